@@ -1,0 +1,351 @@
+"""The on-disk focal-stack dataset, its loader and the HDR <-> [-1, 1] normalisation.
+
+Format (``format_version`` 1): one folder per scene (any name not starting with ``.``)::
+
+    aif.exr          all-in-focus linear RGB, float32, >= 0
+    depth.exr        planar depth along the optical axis in metres, float32, > 0, +inf allowed
+    defocus_<k>.exr  slice k: the defocused linear RGB at focus distance k
+    coc_<k>.exr      slice k: signed CoC diameter in px (negative in front of the focus plane)
+    scene.json       image size, lens (mm), aperture, focus distances (m), per-slice max |CoC|,
+                     generator and seed, units
+
+A scene is written into a hidden temporary folder and renamed into place when complete, so a
+scene folder either is whole or does not exist (tools can resume by skipping existing scenes).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import random
+import shutil
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+
+from .apertures import ApertureModel
+from .checks import check_finite, check_nonnegative, check_positive, check_shape, is_tensor
+from .io import default_mode, read_image, read_json, write_image, write_json
+from .optics import ThinLens
+
+log = logging.getLogger(__name__)
+
+FORMAT = "neuralbokeh-focal-stack"
+FORMAT_VERSION = 1
+UNITS = {
+    "color": "linear scene-referred RGB (HDR), >= 0",
+    "depth": "m along the optical axis (planar), > 0, inf allowed",
+    "coc": "px, signed diameter (negative in front of the focus plane)",
+    "lens": "mm",
+    "focus": "m",
+}
+
+
+@dataclass(frozen=True)
+class Normalization:
+    """Exactly invertible map of linear HDR values [0, inf) onto the network's [-1, 1).
+
+    ``n = (x - s) / (x + s)``, i.e. ``n = tanh(ln(x / s) / 2)``: a tanh of log-exposure, so
+    the network's final tanh works in log space. 0 -> -1, ``s`` -> 0, highlights approach 1
+    without ever being clipped; the inverse is ``x = s (1 + n) / (1 - n)``. In float32 the round
+    trip is exact to about 1e-6 relative for x up to 1e2 s and ~1e-3 at 1e4 s (precision near
+    n = 1); use float64 where more is needed. The same map is applied to input and target, so a
+    pixel the lens leaves unchanged is the identity in either space.
+
+    Args:
+        scale: the linear value mapped to 0 (default 0.18, middle grey), finite and > 0.
+    """
+
+    scale: float = 0.18
+
+    def __post_init__(self) -> None:
+        check_positive("normalization scale", self.scale)
+
+    def encode(self, x: Any) -> Any:
+        """Linear HDR (finite, >= 0; array or tensor of any shape) -> [-1, 1)."""
+        check_nonnegative("linear colour", x)
+        return (x - self.scale) / (x + self.scale)
+
+    def decode(self, n: Any) -> Any:
+        """[-1, 1) -> linear HDR; the exact inverse of :meth:`encode`."""
+        arr = n if (is_tensor(n) or isinstance(n, np.ndarray)) else np.asarray(n, dtype=np.float64)
+        bad = ~((arr >= -1.0) & (arr < 1.0))
+        if bool(bad.any()):
+            raise ValueError(f"normalised colour must be in [-1, 1), got values in [{float(arr.min())}, {float(arr.max())}]")
+        return self.scale * (1.0 + n) / (1.0 - n)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"kind": "mobius-log", "scale": self.scale}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "Normalization":
+        if d.get("kind") != "mobius-log":
+            raise ValueError(f"unknown normalisation {d.get('kind')!r}; expected 'mobius-log'")
+        return cls(scale=float(d["scale"]))
+
+
+def write_scene(
+    folder: str | os.PathLike,
+    aif: np.ndarray,
+    depth_m: np.ndarray,
+    defocus: Sequence[np.ndarray],
+    coc_px: Sequence[np.ndarray],
+    lens: ThinLens,
+    focus_distances_m: Sequence[float],
+    aperture: ApertureModel,
+    generator: dict[str, Any],
+) -> Path:
+    """Write one scene atomically in the dataset format.
+
+    Args:
+        folder: the scene folder to create; must not exist yet.
+        aif: ``(H, W, 3)`` all-in-focus linear RGB, finite, >= 0.
+        depth_m: ``(H, W)`` planar depth in m, > 0 (inf allowed).
+        defocus: K arrays ``(H, W, 3)``, defocused linear RGB, finite, >= 0.
+        coc_px: K arrays ``(H, W)``, signed CoC in px, finite.
+        lens: the lens the CoC maps were computed with.
+        focus_distances_m: K focus distances in m.
+        aperture: the aperture model of the defocus images.
+        generator: provenance (tool name, version, seed, options); JSON-serialisable.
+
+    Returns:
+        The scene folder.
+
+    Raises:
+        FileExistsError: ``folder`` exists.
+        ValueError: inconsistent shapes or counts, or invalid values (named).
+    """
+    folder = Path(folder)
+    if folder.exists():
+        raise FileExistsError(f"scene folder already exists: {folder}")
+    dims = check_shape("aif", aif, "H W 3")
+    check_nonnegative("aif", aif)
+    check_shape("depth_m", depth_m, "H W", H=dims["H"], W=dims["W"])
+    check_positive("depth", depth_m, " m", allow_inf=True)
+    k = len(focus_distances_m)
+    if not (len(defocus) == len(coc_px) == k) or k == 0:
+        raise ValueError(
+            f"need one defocus image and one CoC map per focus distance, got {len(defocus)} defocus, "
+            f"{len(coc_px)} CoC and {k} focus distances"
+        )
+    for i, (img, coc) in enumerate(zip(defocus, coc_px)):
+        check_shape(f"defocus[{i}]", img, "H W 3", H=dims["H"], W=dims["W"])
+        check_nonnegative(f"defocus[{i}]", img)
+        check_shape(f"coc[{i}]", coc, "H W", H=dims["H"], W=dims["W"])
+        check_finite(f"coc[{i}]", coc, " px")
+    finite = depth_m[np.isfinite(depth_m)]
+    far = float(depth_m.max())
+    meta = {
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
+        "image_size": {"width": dims["W"], "height": dims["H"]},
+        "lens": lens.to_dict(),
+        "aperture": aperture.to_dict(),
+        "focus_distances_m": [float(f) for f in focus_distances_m],
+        "depth_range_m": [float(finite.min()) if finite.size else None, far if math.isfinite(far) else None],
+        "files": {"aif": "aif.exr", "depth": "depth.exr"},
+        "slices": [
+            {"focus_m": float(f), "defocus": f"defocus_{i}.exr", "coc": f"coc_{i}.exr", "max_abs_coc_px": float(np.abs(c).max())}
+            for i, (f, c) in enumerate(zip(focus_distances_m, coc_px))
+        ],
+        "max_abs_coc_px": float(max(np.abs(c).max() for c in coc_px)),
+        "generator": generator,
+        "units": UNITS,
+    }
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", suffix=".tmp", dir=folder.parent))
+    try:
+        rgb = ["R", "G", "B"]
+        write_image(tmp / "aif.exr", aif, channel_names=rgb)
+        write_image(tmp / "depth.exr", depth_m, channel_names=["Z"], attributes={"neuralbokeh:units": "m"})
+        for i, (img, coc) in enumerate(zip(defocus, coc_px)):
+            write_image(tmp / f"defocus_{i}.exr", img, channel_names=rgb)
+            write_image(tmp / f"coc_{i}.exr", coc, channel_names=["Y"], attributes={"neuralbokeh:units": "px"})
+        write_json(tmp / "scene.json", meta)
+        os.chmod(tmp, default_mode(directory=True))  # mkdtemp makes 0700 folders
+        os.rename(tmp, folder)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return folder
+
+
+def read_scene_meta(folder: str | os.PathLike) -> dict[str, Any]:
+    """Read and validate ``scene.json`` of a scene folder (files listed must exist).
+
+    Raises:
+        FileNotFoundError: scene.json or a listed image is missing (named).
+        ValueError: wrong format/version or malformed content (named).
+    """
+    folder = Path(folder)
+    meta = read_json(folder / "scene.json")
+    if meta.get("format") != FORMAT:
+        raise ValueError(f"{folder / 'scene.json'}: format must be {FORMAT!r}, got {meta.get('format')!r}")
+    if meta.get("format_version") != FORMAT_VERSION:
+        raise ValueError(
+            f"{folder / 'scene.json'}: format_version {meta.get('format_version')!r} is not supported "
+            f"(this neuralbokeh reads version {FORMAT_VERSION})"
+        )
+    for key in ("image_size", "lens", "aperture", "slices", "files", "max_abs_coc_px"):
+        if key not in meta:
+            raise ValueError(f"{folder / 'scene.json'}: missing key {key!r}")
+    if not meta["slices"]:
+        raise ValueError(f"{folder / 'scene.json'}: no slices")
+    names = [meta["files"]["aif"], meta["files"]["depth"]]
+    names += [s[k] for s in meta["slices"] for k in ("defocus", "coc")]
+    for name in names:
+        if not (folder / name).is_file():
+            raise FileNotFoundError(f"scene {folder}: file {name} listed in scene.json is missing")
+    return meta
+
+
+def _load(folder: Path, name: str, channels: int, size: dict[str, int]) -> np.ndarray:
+    arr = read_image(folder / name)
+    want = (size["height"], size["width"], channels)
+    if arr.shape != want:
+        raise ValueError(f"{folder / name}: expected shape (H, W, C) = {want} from scene.json, got {arr.shape}")
+    return arr
+
+
+def load_scene(folder: str | os.PathLike) -> dict[str, Any]:
+    """Load a whole scene as numpy arrays: ``aif (H,W,3)``, ``depth (H,W)``, ``defocus`` and
+    ``coc`` lists, plus ``meta`` (the validated scene.json)."""
+    folder = Path(folder)
+    meta = read_scene_meta(folder)
+    size = meta["image_size"]
+    return {
+        "meta": meta,
+        "aif": _load(folder, meta["files"]["aif"], 3, size),
+        "depth": _load(folder, meta["files"]["depth"], 1, size)[..., 0],
+        "defocus": [_load(folder, s["defocus"], 3, size) for s in meta["slices"]],
+        "coc": [_load(folder, s["coc"], 1, size)[..., 0] for s in meta["slices"]],
+    }
+
+
+def find_scenes(roots: str | os.PathLike | Sequence[str | os.PathLike]) -> list[Path]:
+    """Scene folders under one or more dataset roots, sorted; hidden (temporary) folders ignored.
+
+    Raises:
+        FileNotFoundError: a root does not exist, or a sub-folder has no scene.json.
+        ValueError: no scene at all.
+    """
+    if isinstance(roots, (str, os.PathLike)):
+        roots = [roots]
+    scenes: list[Path] = []
+    for root in map(Path, roots):
+        if not root.is_dir():
+            raise FileNotFoundError(f"dataset folder does not exist: {root}")
+        for sub in sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".")):
+            if not (sub / "scene.json").is_file():
+                raise FileNotFoundError(f"{sub} has no scene.json: not a scene of the dataset format (incomplete?)")
+            scenes.append(sub)
+    if not scenes:
+        raise ValueError(f"no scenes found in {[str(r) for r in roots]}")
+    return scenes
+
+
+def split_scenes(scenes: Sequence[Path], split: str, test_fraction: float = 0.2, seed: int = 0) -> list[Path]:
+    """Scene-level split: a seeded shuffle, the first ``round(n * test_fraction)`` are ``test``.
+
+    With two or more scenes and a fraction in (0, 1) both parts hold at least one scene.
+    Slices of one scene are never split apart.
+    """
+    if split not in ("train", "test", "all"):
+        raise ValueError(f"split must be 'train', 'test' or 'all', got {split!r}")
+    if not (0.0 <= test_fraction < 1.0):
+        raise ValueError(f"test_fraction must be in [0, 1), got {test_fraction}")
+    if split == "all":
+        return list(scenes)
+    order = sorted(scenes, key=str)
+    random.Random(seed).shuffle(order)
+    n = len(order)
+    n_test = round(n * test_fraction)
+    if test_fraction > 0 and n >= 2:
+        n_test = min(max(n_test, 1), n - 1)
+    chosen = order[:n_test] if split == "test" else order[n_test:]
+    if not chosen:
+        raise ValueError(f"split {split!r} is empty: {n} scene(s) with test_fraction={test_fraction}")
+    return sorted(chosen, key=str)
+
+
+class FocalStackDataset(torch.utils.data.Dataset):
+    """(all-in-focus RGB, CoC map) -> defocused RGB samples, one per (scene, slice).
+
+    Args:
+        roots: one or more dataset folders (each holding scene folders).
+        split: ``"train"``, ``"test"`` or ``"all"``; split by scene (see :func:`split_scenes`).
+        test_fraction: share of scenes held out for ``"test"``.
+        split_seed: seed of the scene shuffle.
+        normalization: HDR <-> [-1, 1) map for colours (default :class:`Normalization`).
+        coc_scale_px: CoC value mapped to 1 (default: the largest |CoC| over *all* scenes of
+            ``roots``, so train and test share it).
+        normalize: if False, return linear colours and CoC in px.
+
+    Each item is a dict: ``aif (3, H, W)``, ``coc (1, H, W)``, ``defocus (3, H, W)`` float32
+    tensors (normalised unless ``normalize=False``), ``scene`` (folder name), ``slice`` (index)
+    and ``focus_m``.
+
+    Raises:
+        FileNotFoundError / ValueError: missing or inconsistent files, named.
+    """
+
+    def __init__(
+        self,
+        roots: str | os.PathLike | Sequence[str | os.PathLike],
+        split: str = "all",
+        test_fraction: float = 0.2,
+        split_seed: int = 0,
+        normalization: Normalization | None = None,
+        coc_scale_px: float | None = None,
+        normalize: bool = True,
+    ) -> None:
+        all_scenes = find_scenes(roots)
+        metas = {p: read_scene_meta(p) for p in all_scenes}
+        self.scenes = split_scenes(all_scenes, split, test_fraction, split_seed)
+        self.metas = [metas[p] for p in self.scenes]
+        self.items = [(i, k) for i, m in enumerate(self.metas) for k in range(len(m["slices"]))]
+        self.max_coc_px = max(float(m["max_abs_coc_px"]) for m in metas.values())
+        self.coc_scale_px = float(coc_scale_px) if coc_scale_px is not None else max(self.max_coc_px, 1.0)
+        check_positive("coc_scale_px", self.coc_scale_px, " px")
+        self.normalization = normalization or Normalization()
+        self.normalize = normalize
+        log.info("FocalStackDataset(%s): %d scenes, %d samples, max |CoC| %.2f px", split, len(self.scenes), len(self.items), self.max_coc_px)
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def __getitem__(self, index: int) -> dict[str, Any]:
+        i, k = self.items[index]
+        folder, meta = self.scenes[i], self.metas[i]
+        size, sl = meta["image_size"], meta["slices"][k]
+        aif = _load(folder, meta["files"]["aif"], 3, size)
+        defocus = _load(folder, sl["defocus"], 3, size)
+        coc = _load(folder, sl["coc"], 1, size)
+        check_nonnegative(str(folder / meta["files"]["aif"]), aif)
+        check_nonnegative(str(folder / sl["defocus"]), defocus)
+        check_finite(str(folder / sl["coc"]), coc, " px")
+        if self.normalize:
+            limit = np.abs(coc).max()
+            if limit > self.coc_scale_px:
+                raise ValueError(
+                    f"{folder / sl['coc']}: |CoC| up to {limit:.3f} px exceeds coc_scale_px={self.coc_scale_px} px"
+                )
+            aif, defocus = self.normalization.encode(aif), self.normalization.encode(defocus)
+            coc = coc / self.coc_scale_px
+
+        def chw(a: np.ndarray) -> torch.Tensor:
+            return torch.from_numpy(np.ascontiguousarray(a.transpose(2, 0, 1), dtype=np.float32))
+
+        return {
+            "aif": chw(aif),
+            "coc": chw(coc),
+            "defocus": chw(defocus),
+            "scene": folder.name,
+            "slice": k,
+            "focus_m": float(sl["focus_m"]),
+        }

@@ -1,0 +1,160 @@
+"""Image and JSON files: OpenImageIO reads and writes, every write atomic.
+
+One reader and one writer for the whole package. Arrays are numpy ``(H, W, C)``; EXR is written
+as float32 with lossless ZIP compression, so linear HDR values (and +inf depths) survive exactly.
+Writes go to a temporary file in the target folder and are renamed over the target, so a crash
+never leaves a half-written file under the final name.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import OpenImageIO as oiio
+
+_FORMATS = {"float32": oiio.FLOAT, "float16": oiio.HALF, "uint8": oiio.UINT8, "uint16": oiio.UINT16}
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def default_mode(directory: bool = False) -> int:
+    """Permissions a plain ``open``/``mkdir`` would give (0o666/0o777 less the umask)."""
+    return (0o777 if directory else 0o666) & ~_umask()
+
+
+def _temp_path(path: Path) -> Path:
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
+    os.close(fd)
+    os.chmod(tmp, default_mode())  # mkstemp makes 0600 files
+    return Path(tmp)
+
+
+def write_image(
+    path: str | os.PathLike,
+    image: np.ndarray,
+    attributes: dict[str, Any] | None = None,
+    channel_names: list[str] | None = None,
+    pixel_type: str = "float32",
+) -> Path:
+    """Write an image atomically; the format comes from the extension (.exr, .tif, .png, ...).
+
+    Args:
+        path: destination; its folder must exist.
+        image: ``(H, W)`` or ``(H, W, C)`` array. Float data is written as given (no clipping);
+            for integer pixel types it must already be in the type's range.
+        attributes: extra metadata (strings, ints, floats) stored in the file header.
+        channel_names: e.g. ``["R", "G", "B"]`` or ``["Z"]`` (default: OpenImageIO's).
+        pixel_type: one of ``float32``, ``float16``, ``uint8``, ``uint16``.
+
+    Returns:
+        The path written.
+
+    Raises:
+        ValueError: bad array shape, pixel type, or values outside an integer type's range.
+        OSError: OpenImageIO cannot write the file (its message included).
+    """
+    path = Path(path)
+    arr = np.asarray(image)
+    if arr.ndim == 2:
+        arr = arr[:, :, None]
+    if arr.ndim != 3 or min(arr.shape) < 1:
+        raise ValueError(f"image must have shape (H, W) or (H, W, C), got {np.shape(image)}")
+    if pixel_type not in _FORMATS:
+        raise ValueError(f"pixel_type must be one of {sorted(_FORMATS)}, got {pixel_type!r}")
+    if pixel_type.startswith("uint"):
+        hi = np.iinfo(pixel_type).max
+        if arr.min() < 0 or arr.max() > hi:
+            raise ValueError(f"{pixel_type} image values must be in [0, {hi}], got [{arr.min()}, {arr.max()}]")
+        arr = np.ascontiguousarray(arr, dtype=pixel_type)
+    else:
+        arr = np.ascontiguousarray(arr, dtype=np.float32)
+    h, w, c = arr.shape
+    spec = oiio.ImageSpec(w, h, c, _FORMATS[pixel_type])
+    if channel_names:
+        if len(channel_names) != c:
+            raise ValueError(f"channel_names must name {c} channels, got {channel_names}")
+        spec.channelnames = tuple(channel_names)
+    if path.suffix.lower() == ".exr":
+        spec.attribute("compression", "zip")
+    for key, value in (attributes or {}).items():
+        spec.attribute(key, value)
+    tmp = _temp_path(path)
+    try:
+        out = oiio.ImageOutput.create(str(tmp))
+        if out is None:
+            raise OSError(f"cannot write {path}: {oiio.geterror()}")
+        if not out.open(str(tmp), spec) or not out.write_image(arr):
+            msg = out.geterror()
+            out.close()
+            raise OSError(f"cannot write {path}: {msg}")
+        out.close()
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return path
+
+
+def read_image(path: str | os.PathLike, with_attributes: bool = False) -> Any:
+    """Read an image as float32 ``(H, W, C)`` (integer files scaled to [0, 1] by OpenImageIO).
+
+    Args:
+        path: any format OpenImageIO reads.
+        with_attributes: also return the header metadata as a dict.
+
+    Returns:
+        The array, or ``(array, attributes)``.
+
+    Raises:
+        FileNotFoundError: no such file.
+        OSError: OpenImageIO cannot read it (its message included).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no such image file: {path}")
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise OSError(f"cannot read {path}: {oiio.geterror()}")
+    try:
+        spec = inp.spec()
+        arr = inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT)
+        if arr is None:
+            raise OSError(f"cannot read {path}: {inp.geterror()}")
+        attrs = {a.name: a.value for a in spec.extra_attribs} if with_attributes else None
+    finally:
+        inp.close()
+    arr = np.asarray(arr, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
+    return (arr, attrs) if with_attributes else arr
+
+
+def write_json(path: str | os.PathLike, data: Any) -> Path:
+    """Write JSON atomically (indented, keys in given order; ``inf`` written as ``Infinity``)."""
+    path = Path(path)
+    tmp = _temp_path(path)
+    try:
+        tmp.write_text(json.dumps(data, indent=2) + "\n")
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return path
+
+
+def read_json(path: str | os.PathLike) -> Any:
+    """Read a JSON file; ``FileNotFoundError`` or ``ValueError`` (with the path) on failure."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no such file: {path}")
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{path} is not valid JSON: {e}") from None

@@ -1,0 +1,204 @@
+"""Thin-lens optics: circle of confusion (eq. 1 of the Neural Bokeh paper) and network depth.
+
+Units: lens figures in millimetres, scene distances (depth, focus) in metres, the circle of
+confusion (CoC) as a *diameter in pixels*. Pure math: imports numpy and ``checks`` only, so the
+torch-free runtime can use it; torch tensors are accepted and returned as tensors (same dtype
+and device) through plain arithmetic.
+
+Eq. (1) of Mandl et al. 2024::
+
+    c = (w_i / w_s) * a * d_s * |d_p - d_f| / (d_p * d_f)
+
+with ``w_i`` the image width (px), ``w_s`` the sensor width (mm), ``a = f / N`` the aperture
+diameter (mm), ``d_s = f d_f / (d_f - f)`` the lens-to-sensor distance from the thin-lens law
+(mm), ``d_p`` the point's depth and ``d_f`` the focus distance. It is evaluated in the
+equivalent, numerically clean form ``c = K (1/d_f - 1/d_p)`` with ``K = (w_i/w_s) a d_s``,
+which gives the finite limit ``K / d_f`` for ``d_p = inf`` without special cases.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from typing import Any, Iterable, Sequence
+
+from .checks import check_positive
+
+MM_PER_M = 1000.0
+
+
+@dataclass(frozen=True)
+class ThinLens:
+    """An ideal thin lens on a sensor of known width.
+
+    Args:
+        focal_length_mm: focal length f in mm, finite and > 0.
+        f_number: the f-number N (aperture diameter = f / N), finite and > 0.
+        sensor_width_mm: width of the sensor area the image covers, in mm, finite and > 0.
+
+    Raises:
+        ValueError: any figure is not finite and > 0.
+    """
+
+    focal_length_mm: float
+    f_number: float
+    sensor_width_mm: float
+
+    def __post_init__(self) -> None:
+        check_positive("focal_length_mm", self.focal_length_mm, " mm")
+        check_positive("f_number", self.f_number)
+        check_positive("sensor_width_mm", self.sensor_width_mm, " mm")
+
+    @property
+    def aperture_diameter_mm(self) -> float:
+        """Entrance-pupil diameter a = f / N in mm."""
+        return self.focal_length_mm / self.f_number
+
+    def _check_focus(self, focus_m: float) -> float:
+        focus_m = float(focus_m)
+        check_positive("focus distance", focus_m, " m", allow_inf=True)
+        if focus_m * MM_PER_M <= self.focal_length_mm:
+            raise ValueError(
+                f"focus distance must be greater than the focal length "
+                f"({self.focal_length_mm} mm), got {focus_m} m"
+            )
+        return focus_m
+
+    def sensor_distance_mm(self, focus_m: float) -> float:
+        """Lens-to-sensor distance d_s (mm) that focuses at ``focus_m`` (m, may be inf).
+
+        Thin-lens law 1/f = 1/d_f + 1/d_s, so d_s = f d_f / (d_f - f); d_s = f at infinity.
+        """
+        focus_m = self._check_focus(focus_m)
+        f = self.focal_length_mm
+        if math.isinf(focus_m):
+            return f
+        d_f = focus_m * MM_PER_M
+        return f * d_f / (d_f - f)
+
+    def coc_scale_px(self, focus_m: float, image_width_px: int) -> float:
+        """K = (w_i / w_s) a d_s in px*mm: the CoC is K (1/d_f - 1/d_p) with distances in mm."""
+        if int(image_width_px) != image_width_px or image_width_px <= 0:
+            raise ValueError(f"image_width_px must be a positive integer, got {image_width_px!r}")
+        d_s = self.sensor_distance_mm(focus_m)
+        return (image_width_px / self.sensor_width_mm) * self.aperture_diameter_mm * d_s
+
+    def coc_px(self, depth_m: Any, focus_m: float, image_width_px: int, signed: bool = False) -> Any:
+        """Circle-of-confusion diameter in pixels, eq. (1).
+
+        Args:
+            depth_m: distance of the scene point(s) along the optical axis in m: a float, a numpy
+                array or a torch tensor of any shape (e.g. ``(H, W)`` or ``(B, 1, H, W)``);
+                each value > 0, ``+inf`` allowed (gives the finite limit).
+            focus_m: focus distance in m, greater than the focal length; ``inf`` allowed.
+            image_width_px: width of the image in pixels (the sensor width maps onto it).
+            signed: if True the result is negative in front of the focus plane (depth < focus)
+                and positive behind it; otherwise the absolute diameter.
+
+        Returns:
+            The CoC diameter(s) in px, same type/shape (and dtype/device for arrays and tensors)
+            as ``depth_m``; a Python float for a scalar input.
+
+        Raises:
+            ValueError: a depth is <= 0, NaN or -inf (the message gives the number of bad
+                pixels and the first location), or the focus distance is invalid.
+        """
+        k = self.coc_scale_px(focus_m, image_width_px)
+        inv_focus = 1.0 / (float(focus_m) * MM_PER_M)
+        scalar = isinstance(depth_m, (int, float))
+        if scalar:
+            depth_m = float(depth_m)
+        check_positive("depth", depth_m, " m", allow_inf=True)
+        c = k * (inv_focus - 1.0 / (depth_m * MM_PER_M))
+        if not signed:
+            c = abs(c)
+        return float(c) if scalar else c
+
+    def to_dict(self) -> dict[str, float]:
+        """JSON-serialisable description (units in the key names)."""
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "ThinLens":
+        """Inverse of :meth:`to_dict`; unknown or missing keys raise ``ValueError``."""
+        keys = {"focal_length_mm", "f_number", "sensor_width_mm"}
+        if set(d) != keys:
+            raise ValueError(f"lens description must have exactly the keys {sorted(keys)}, got {sorted(d)}")
+        return cls(**{k: float(v) for k, v in d.items()})
+
+
+def max_coc_px(
+    lens: ThinLens,
+    depth_range_m: tuple[float, float],
+    focus_distances_m: Iterable[float],
+    image_width_px: int,
+) -> float:
+    """Largest CoC diameter (px) over a depth range and a set of focus distances.
+
+    |c| = K |1/d_f - 1/d_p| is monotonic in 1/d_p, so its maximum over ``[near, far]`` is at
+    one of the two ends; ``far`` may be ``inf``.
+
+    Args:
+        lens: the lens.
+        depth_range_m: ``(near, far)`` in m with ``0 < near <= far`` (far may be inf).
+        focus_distances_m: one or more focus distances in m.
+        image_width_px: image width in px.
+
+    Raises:
+        ValueError: empty focus list, or an invalid range or distance.
+    """
+    near, far = (float(v) for v in depth_range_m)
+    check_positive("near depth", near, " m")
+    check_positive("far depth", far, " m", allow_inf=True)
+    if far < near:
+        raise ValueError(f"depth range must have near <= far, got ({near}, {far}) m")
+    focus = list(focus_distances_m)
+    if not focus:
+        raise ValueError("focus_distances_m must hold at least one focus distance, got none")
+    return max(lens.coc_px(d, f, image_width_px) for f in focus for d in (near, far))
+
+
+def blocks_for_coc(max_coc: float) -> int:
+    """Number of residual blocks N for a largest CoC diameter ``max_coc`` (px).
+
+    The smallest N >= 0 with 2N + 1 >= max_coc: block n has kernels of size 2n + 1, so the
+    last block's kernel covers the largest CoC. N = 0 means nothing in the data set is
+    blurred beyond one pixel.
+
+    Raises:
+        ValueError: ``max_coc`` is negative, NaN or infinite.
+    """
+    c = float(max_coc)
+    if not (c >= 0 and math.isfinite(c)):
+        raise ValueError(f"max_coc must be finite and >= 0 px, got {max_coc!r}")
+    return max(0, math.ceil((c - 1.0) / 2.0))
+
+
+def focus_sweep_m(near_m: float, far_m: float, count: int) -> list[float]:
+    """``count`` focus distances spaced uniformly in diopters between ``near_m`` and ``far_m``.
+
+    Uniform diopter spacing gives equal CoC steps between neighbouring focus settings.
+    ``far_m`` may be inf. Returned near to far.
+    """
+    if count < 1:
+        raise ValueError(f"count must be >= 1, got {count}")
+    check_positive("near focus", near_m, " m")
+    check_positive("far focus", far_m, " m", allow_inf=True)
+    if far_m < near_m:
+        raise ValueError(f"focus range must have near <= far, got ({near_m}, {far_m}) m")
+    d0, d1 = 1.0 / near_m, 1.0 / far_m
+    if count == 1:
+        return [2.0 / (d0 + d1)]
+    out: list[float] = []
+    for i in range(count):
+        dio = d0 + (d1 - d0) * i / (count - 1)
+        out.append(math.inf if dio == 0 else 1.0 / dio)
+    return out
+
+
+__all__: Sequence[str] = [
+    "ThinLens",
+    "max_coc_px",
+    "blocks_for_coc",
+    "focus_sweep_m",
+]

@@ -1,0 +1,109 @@
+"""Slow, readable reference versions of the renderers (numpy float64, explicit loops).
+
+For tests only: every fast path in this package is checked against one of these with stated
+tolerances. They follow the definitions literally: each source pixel adds its own kernel
+(evaluated at its *own* image position, so cat-eye kernels are exact here, where the fast path
+interpolates them from a grid) onto a canvas; with cat-eye kernels coverage (and with
+``preserve_uniform`` colour) is divided by the same scatter of a uniform field; the layers are then composited back to front.
+Use them on tiny images only (a few thousand pixels).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..apertures import ApertureModel, field_position
+
+
+def _mirror(i: int, n: int, p: int) -> int:
+    """Source index of padded position ``i`` (reflect, or edge for tiny images), as in the fast path."""
+    j = i - p
+    if p < n:  # reflect without repeating the edge
+        if j < 0:
+            return -j
+        if j >= n:
+            return 2 * (n - 1) - j
+        return j
+    return min(max(j, 0), n - 1)
+
+
+def reference_scatter_layers(
+    colors: np.ndarray,
+    alphas: np.ndarray,
+    coc_px: list[float],
+    aperture: ApertureModel | None = None,
+    fill_holes: bool = True,
+    preserve_uniform: bool = False,
+) -> np.ndarray:
+    """Literal scatter + back-to-front over of fronto-parallel layers.
+
+    Args:
+        colors: ``(L, 3, H, W)`` premultiplied linear RGB.
+        alphas: ``(L, 1, H, W)`` coverage.
+        coc_px: signed CoC (px) per layer.
+        aperture: aperture model (default disk).
+        fill_holes: divide by the accumulated coverage (as the fast path).
+        preserve_uniform: divide each layer by its scatter of a uniform field (as the fast path).
+
+    Returns:
+        ``(3, H, W)`` float64.
+    """
+    aperture = aperture or ApertureModel()
+    colors = np.asarray(colors, dtype=np.float64)
+    alphas = np.asarray(alphas, dtype=np.float64)
+    n_layers, _, h, w = colors.shape
+    n_a = 3 if aperture.chromatic else 1
+    n_u = n_a if aperture.spatially_varying else 0  # uniform-field response channels
+    pad = max(aperture.kernel_radius_px(abs(c)) for c in coc_px)
+    out_c = np.zeros((3, h, w))
+    out_a = np.zeros((n_a, h, w))
+    for i in sorted(range(n_layers), key=lambda j: -coc_px[j]):  # far to near
+        c = coc_px[i]
+        rad = aperture.kernel_radius_px(abs(c))
+        # Canvas covers the padded image plus one kernel radius on every side.
+        m = pad + rad
+        canvas = np.zeros((3 + n_a + n_u, h + 2 * m, w + 2 * m))
+        for py in range(h + 2 * pad):
+            sy = _mirror(py, h, pad)
+            for px in range(w + 2 * pad):
+                sx = _mirror(px, w, pad)
+                a = alphas[i, 0, sy, sx]
+                if a == 0 and n_u == 0:
+                    continue
+                k = aperture.kernels(abs(c), field_position(sy, sx, h, w))
+                if c < 0:
+                    k = k[:, ::-1, ::-1]
+                r = k.shape[-1] // 2
+                # colour, coverage, and a uniform unit field (every pixel scatters 1)
+                value = np.concatenate([colors[i, :, sy, sx], np.full(n_a, a), np.ones(n_u)])
+                kk = np.concatenate([k, k if n_a == 3 else k[1:2]] + ([k if n_u == 3 else k[1:2]] if n_u else []), 0)
+                y0, x0 = py + (m - pad) - r, px + (m - pad) - r
+                canvas[:, y0 : y0 + 2 * r + 1, x0 : x0 + 2 * r + 1] += kk * value[:, None, None]
+        layer = canvas[:, m : m + h, m : m + w]
+        if n_u:  # coverage always, colour on request, divided by the uniform-field response
+            u = np.maximum(layer[3 + n_a :], 1e-6)
+            color = layer[:3] / np.broadcast_to(u, (3, h, w)) if preserve_uniform else layer[:3]
+            layer = np.concatenate([color, layer[3 : 3 + n_a] / u])
+        cc, aa = layer[:3], np.clip(layer[3:], 0.0, 1.0)
+        out_c = cc + (1.0 - aa) * out_c
+        out_a = aa + (1.0 - aa) * out_a
+    if fill_holes:
+        cover = np.broadcast_to(out_a, (3, h, w))
+        out_c = np.where(cover > 1e-6, out_c / np.maximum(cover, 1e-6), out_c)
+    return out_c
+
+
+def reference_scatter_defocus(
+    aif: np.ndarray, coc: np.ndarray, aperture: ApertureModel | None = None, coc_step: float = 0.5
+) -> np.ndarray:
+    """Slice ``(3, H, W)`` AIF by ``round(coc / coc_step)`` and scatter the slices literally.
+
+    Each slice uses the mean CoC of its pixels. Returns ``(3, H, W)`` float64.
+    """
+    aif = np.asarray(aif, dtype=np.float64)
+    coc = np.asarray(coc, dtype=np.float64)
+    idx = np.round(coc / coc_step).astype(np.int64)
+    slices = sorted(set(idx.ravel().tolist()))
+    masks = np.stack([(idx == s).astype(np.float64) for s in slices])[:, None]
+    means = [float(coc[idx == s].mean()) for s in slices]
+    return reference_scatter_layers(aif[None] * masks, masks, means, aperture)
