@@ -282,8 +282,9 @@ class FocalStackDataset(torch.utils.data.Dataset):
         test_fraction: share of scenes held out for ``"test"``.
         split_seed: seed of the scene shuffle.
         normalization: HDR <-> [-1, 1) map for colours (default :class:`Normalization`).
-        coc_scale_px: CoC value mapped to 1 (default: the largest |CoC| over *all* scenes of
-            ``roots``, so train and test share it).
+        coc_scale_px: CoC value (px) mapped to 1 (default: the largest |CoC| over *all* scenes
+            of ``roots``, at least 1 px, so train and test share it). A larger |CoC| in an item
+            raises ``ValueError`` instead of being clipped.
         normalize: if False, return linear colours and CoC in px.
 
     Each item is a dict: ``aif (3, H, W)``, ``coc (1, H, W)``, ``defocus (3, H, W)`` float32
