@@ -157,6 +157,27 @@ class Star(Aperture):
         return (side * origin_side >= 0.0).astype(np.float64)
 
 
+@dataclass(frozen=True)
+class Gaussian(Aperture):
+    """A Gaussian profile exp(-r^2 / (2 sigma^2)) cut at the CoC radius: not a real aperture but
+    the CoC-driven Gaussian blur that simple defocus approximations use (a baseline).
+
+    Args:
+        sigma_ratio: sigma over the CoC radius, in (0, 1] (default 0.5: the CoC diameter is 4 sigma).
+    """
+
+    sigma_ratio: float = 0.5
+    name: ClassVar[str] = "gaussian"
+
+    def __post_init__(self) -> None:
+        if not (0.0 < self.sigma_ratio <= 1.0):
+            raise ValueError(f"gaussian sigma_ratio must be in (0, 1], got {self.sigma_ratio!r}")
+
+    def transmission(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        r2 = u * u + v * v
+        return np.where(r2 <= 1.0, np.exp(-r2 / (2.0 * self.sigma_ratio**2)), 0.0)
+
+
 @dataclass(frozen=True, eq=False)
 class MaskAperture(Aperture):
     """An arbitrary aperture from a transmission image covering the square [-1, 1]^2.
@@ -203,7 +224,7 @@ class MaskAperture(Aperture):
         return {"shape": self.name, "size": list(q.shape), "data_b64": base64.b64encode(q.tobytes()).decode()}
 
 
-_SHAPES: dict[str, type[Aperture]] = {c.name: c for c in (Disk, Polygon, Heart, Ring, Star, MaskAperture)}
+_SHAPES: dict[str, type[Aperture]] = {c.name: c for c in (Disk, Polygon, Heart, Ring, Star, Gaussian, MaskAperture)}
 SHAPE_NAMES = tuple(_SHAPES)
 
 
@@ -227,12 +248,13 @@ def parse_aperture(spec: str, load_mask: Callable[[str], np.ndarray] | None = No
     """Parse a command-line aperture spec.
 
     Forms: ``disk``, ``polygon:BLADES[:ROTATION_DEG]``, ``heart``, ``ring[:INNER_RATIO]``,
-    ``star[:POINTS[:INNER_RATIO]]``, ``mask:PATH`` (needs ``load_mask(path) -> (H, W)``).
+    ``star[:POINTS[:INNER_RATIO]]``, ``gaussian[:SIGMA_RATIO]``, ``mask:PATH`` (needs
+    ``load_mask(path) -> (H, W)``).
 
     Raises:
         ValueError: an unknown shape or malformed parameters (the message shows the forms).
     """
-    forms = "disk, polygon:BLADES[:ROTATION_DEG], heart, ring[:INNER], star[:POINTS[:INNER]], mask:PATH"
+    forms = "disk, polygon:BLADES[:ROTATION_DEG], heart, ring[:INNER], star[:POINTS[:INNER]], gaussian[:SIGMA_RATIO], mask:PATH"
     name, _, rest = spec.partition(":")
     args = rest.split(":") if rest else []
     try:
@@ -240,6 +262,8 @@ def parse_aperture(spec: str, load_mask: Callable[[str], np.ndarray] | None = No
             return Disk()
         if name == "heart" and not args:
             return Heart()
+        if name == "gaussian" and len(args) <= 1:
+            return Gaussian(*(float(a) for a in args))
         if name == "polygon" and 1 <= len(args) <= 2:
             return Polygon(int(args[0]), float(args[1]) if len(args) > 1 else 0.0)
         if name == "ring" and len(args) <= 1:

@@ -91,6 +91,13 @@ def check_nonnegative(name: str, x: Any, unit: str = "") -> None:
     _report(name, "finite and >= 0", arr, bad, unit)
 
 
+def check_at_least(name: str, x: Any, low: float, unit: str = "") -> None:
+    """Raise ``ValueError`` unless every element of ``x`` is finite and >= ``low``."""
+    arr = x if (is_tensor(x) or isinstance(x, np.ndarray)) else np.asarray(x, dtype=np.float64)
+    bad = ~((arr >= low) & (arr < float("inf")))
+    _report(name, f"finite and >= {low:g}", arr, bad, unit)
+
+
 def check_in_range(name: str, x: Any, low: float, high: float, unit: str = "") -> None:
     """Raise ``ValueError`` unless every element is finite and within ``[low, high]``."""
     arr = x if (is_tensor(x) or isinstance(x, np.ndarray)) else np.asarray(x, dtype=np.float64)

@@ -6,6 +6,7 @@ import pytest
 from neuralbokeh.apertures import (
     ApertureModel,
     Disk,
+    Gaussian,
     Heart,
     MaskAperture,
     Polygon,
@@ -18,7 +19,7 @@ from neuralbokeh.apertures import (
     shape_kernel,
 )
 
-SHAPES = [Disk(), Polygon(7), Polygon(5, 20.0), Heart(), Ring(0.6), Star(5, 0.45)]
+SHAPES = [Disk(), Polygon(7), Polygon(5, 20.0), Heart(), Ring(0.6), Star(5, 0.45), Gaussian()]
 
 
 def _heart_area() -> float:
@@ -62,7 +63,7 @@ def test_subpixel_diameters_converge_to_delta(shape):
     assert k.shape == (3, 3) and k[1, 1] > 0.95
 
 
-@pytest.mark.parametrize("shape", [s for s in SHAPES if s.name != "heart"] + [Heart()], ids=lambda s: s.name)
+@pytest.mark.parametrize("shape", [s for s in SHAPES if s.name not in ("heart", "gaussian")] + [Heart()], ids=lambda s: s.name)
 def test_area_matches_closed_form(shape):
     d = 61.0
     s = shape_kernel(shape, d)
@@ -96,6 +97,18 @@ def test_heart_points_down():
     half = k.shape[0] // 2
     assert k[:half].sum() > k[half + 1 :].sum()  # more light in the lobes than in the tip
     np.testing.assert_allclose(k, k[:, ::-1], atol=1e-12)
+
+
+def test_gaussian_profile():
+    k = shape_kernel(Gaussian(0.5), 41.0)
+    r = np.arange(41) - 20
+    yy, xx = np.meshgrid(r, r, indexing="ij")
+    sigma = np.sqrt((k * xx**2).sum())
+    # a 2-D Gaussian cut at R = 2 sigma: per-axis variance sigma^2 (1 - (1 + R^2/2s^2) e^-R^2/2s^2) / (1 - e^-R^2/2s^2)
+    e = math.exp(-2.0)
+    expected = (41 / 4) * math.sqrt((1 - 3 * e) / (1 - e))
+    assert sigma == pytest.approx(expected, rel=2e-3)
+    assert k[20, 20] == k.max() and k[20, 0] < 0.2 * k.max()
 
 
 def test_ring_has_a_hole():
@@ -171,6 +184,7 @@ def test_parse_aperture():
     assert parse_aperture("ring:0.4") == Ring(0.4)
     assert parse_aperture("star:6:0.5") == Star(6, 0.5)
     assert parse_aperture("heart") == Heart()
+    assert parse_aperture("gaussian:0.4") == Gaussian(0.4)
     mask = np.ones((4, 4))
     assert parse_aperture("mask:any.png", load_mask=lambda p: mask) == MaskAperture(mask)
     for bad in ["hexagon", "polygon", "polygon:2", "ring:1.5", "disk:3", "mask:x.png"]:

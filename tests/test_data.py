@@ -18,7 +18,7 @@ LENS = ThinLens(85.0, 1.4, 36.0)
 
 
 def test_normalization_maps_and_inverts_exactly():
-    n = Normalization(0.18)
+    n = Normalization(0.18, offset=0.0)
     x = np.concatenate([[0.0], np.geomspace(1e-6, 1e6, 2001)])
     y = n.encode(x)
     assert y[0] == -1.0 and n.encode(0.18) == 0.0
@@ -26,6 +26,17 @@ def test_normalization_maps_and_inverts_exactly():
     np.testing.assert_allclose(n.decode(y), x, rtol=1e-9, atol=1e-15)
     # it is tanh of half the log-exposure
     np.testing.assert_allclose(y[1:], np.tanh(0.5 * np.log(x[1:] / 0.18)), atol=1e-12)
+
+
+def test_normalization_offset_keeps_black_off_the_saturated_end():
+    n = Normalization()  # offset = scale / 100
+    assert n.offset == pytest.approx(0.0018)
+    assert n.encode(0.0) == pytest.approx(-99 / 101)  # (o - s) / (o + s)
+    assert math.atanh(n.encode(0.0)) == pytest.approx(0.5 * math.log(0.01))
+    x = np.array([-0.0018, -0.001, 0.0, 0.5, 1e3])  # slightly negative noise is representable
+    np.testing.assert_allclose(n.decode(n.encode(x)), x, rtol=1e-9, atol=1e-15)
+    with pytest.raises(ValueError, match=r"linear colour must be finite and >= -0.0018, got -0.01"):
+        n.encode(np.array([-0.01]))
 
 
 def test_normalization_float32_round_trip_and_torch():
@@ -38,7 +49,7 @@ def test_normalization_float32_round_trip_and_torch():
 
 def test_normalization_errors():
     n = Normalization()
-    with pytest.raises(ValueError, match=r"linear colour must be finite and >= 0, got -0.1 at pixel \(0, 1\)"):
+    with pytest.raises(ValueError, match=r"linear colour must be finite and >= -0.0018, got -0.1 at pixel \(0, 1\)"):
         n.encode(np.array([[0.5, -0.1]]))
     with pytest.raises(ValueError, match="got inf"):
         n.encode(np.array([[np.inf]]))
@@ -47,6 +58,8 @@ def test_normalization_errors():
     with pytest.raises(ValueError, match="scale"):
         Normalization(0.0)
     assert Normalization.from_dict(Normalization(0.5).to_dict()) == Normalization(0.5)
+    with pytest.raises(ValueError, match="offset"):
+        Normalization(0.5, offset=-1.0)
 
 
 # --- scene files -------------------------------------------------------------------------------

@@ -19,7 +19,7 @@ def test_readme_opens_with_two_commands_and_ci_runs_the_test_one():
     first_fence = text.index("```")
     assert text[:first_fence].count("\n") < 6  # the commands come first
     main_job, tests = _readme_commands()
-    assert "pip install -e" in main_job and "data_tools.synth" in main_job
+    assert "pip install -e" in main_job and "data_tools.synth" in main_job and "train.py configs/quickstart.toml" in main_job
     assert "pip install -e" in tests and "pytest" in tests
     assert tests in (ROOT / ".ci" / "run").read_text()
 
@@ -50,3 +50,9 @@ def test_pure_math_modules_import_no_torch_and_nothing_else_of_the_package():
         "assert 'torch' not in sys.modules, 'torch was imported'"
     )
     subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)
+
+
+def test_model_is_pure_definitions():
+    # model.py knows nothing of files, datasets or training (DESIGN.md)
+    imports = _imports(ROOT / "neuralbokeh" / "model.py")
+    assert not any(n.lstrip(".").split(".")[0] in ("io", "data", "training", "OpenImageIO") for n in imports), imports

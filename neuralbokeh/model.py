@@ -1,0 +1,260 @@
+"""The Neural Bokeh network (Mandl et al. 2024, sections 3.1-3.2): pure definitions, no I/O.
+
+Input ``(B, 4, H, W)``: normalised all-in-focus RGB in [-1, 1) and the CoC map scaled to
+[-1, 1]. Output ``(B, 3, H, W)``: the normalised defocused RGB in (-1, 1).
+
+1. *Tiling.* The image is cut into a grid of ``tile x tile`` cores, each extended by
+   ``overlap`` px on every side (windows of ``tile + 2 overlap``). Images whose size is not a
+   multiple of ``tile`` are padded at the bottom/right (edge replication) to the next multiple,
+   and by ``overlap`` all round; the padding is cropped away at the end. The windows are
+   concatenated along channels and every window has its own weights (grouped convolutions,
+   one group per tile).
+2. ``C1`` (1x1, 4 -> ``features``) -> residual blocks ``R_1 .. R_N``; block n is
+   ``x + conv_b(relu(conv_a(x)))`` with per-channel convolutions of size ``2n + 1``
+   (``kernels = "fixed3"``: all 3x3, the paper's ablation) -> concatenation with the window's
+   RGB -> ``C2`` (1x1, ``features + 3`` -> 3) -> tanh.
+3. Windows are put back in place and overlaps averaged (exactly: see :func:`untile`).
+
+Head (``head``): the paper applies tanh to C2's output. ``"identity"`` (default) predicts in
+atanh space instead: ``tanh(atanh(rgb) + d)`` with ``d = C2(...)`` initialised to zero, so the
+untrained network returns its input and in-focus pixels cost nothing to learn. With the
+package's normalisation ``atanh(n) = ln((x + o) / s) / 2``: ``d`` is a correction in log
+exposure. It is evaluated as ``(rgb + tanh d) / (1 + rgb tanh d)`` (the tanh addition
+formula), which returns the input bit for bit when ``d = 0`` and never evaluates atanh(+-1);
+``tanh d`` is kept within 1e-6 of +-1 (``|d| < 7.25``) so the denominator cannot vanish. ``"paper"`` is the plain
+tanh with default initialisation, kept as an ablation.
+
+Per-channel convolutions run through the FFT (exact: same results and gradients as direct
+convolution to float rounding) from ``fft_min_kernel`` up when no gradient is needed and from
+``fft_min_kernel_train`` up when one is: on a 2-core CPU PyTorch's direct depthwise forward
+is fast to 13x13 and collapses at 15x15, while its backward is slower than the FFT from 5x5
+(``benchmarks/bench_conv.py``).
+
+The second convolution of every residual block starts at zero (a "zero-init residual"), so the
+untrained blocks pass C1's features through unchanged.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, fields
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from .render.fftconv import fft_convolve2d
+
+KERNELS = ("growing", "fixed3")
+TILINGS = ("overlap", "none", "no_overlap")
+HEADS = ("identity", "paper")
+_TANH_LIMIT = 1.0 - 1e-6  # keeps 1 + rgb * tanh(d) > 0 even for inputs of exactly +-1
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """Everything needed to rebuild the network (stored in every checkpoint).
+
+    Args:
+        image_height, image_width: the resolution the network is built for (px).
+        blocks: number N of residual blocks (from the data's largest CoC, see
+            ``optics.blocks_for_coc``), >= 0.
+        features: feature channels per tile, >= 1.
+        tile: tile core size t (px), >= 1.
+        overlap: extra context t_o on every side of a tile (px), 0 <= 2 t_o <= t.
+        tiling: ``"overlap"`` (the paper), ``"no_overlap"`` (t_o forced to 0) or ``"none"``
+            (one tile covering the image).
+        kernels: ``"growing"`` (2n+1, the paper) or ``"fixed3"`` (ablation).
+        head: ``"identity"`` or ``"paper"`` (see the module doc).
+        fft_min_kernel: kernel size from which per-channel convolutions use the FFT (no grad).
+        fft_min_kernel_train: the same when gradients are computed.
+    """
+
+    image_height: int
+    image_width: int
+    blocks: int
+    features: int = 12
+    tile: int = 200
+    overlap: int = 60
+    tiling: str = "overlap"
+    kernels: str = "growing"
+    head: str = "identity"
+    fft_min_kernel: int = 15
+    fft_min_kernel_train: int = 5
+
+    def __post_init__(self) -> None:
+        for name in ("image_height", "image_width", "features", "tile", "fft_min_kernel", "fft_min_kernel_train"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or v < 1:
+                raise ValueError(f"{name} must be an integer >= 1, got {v!r}")
+        if not isinstance(self.blocks, int) or self.blocks < 0:
+            raise ValueError(f"blocks must be an integer >= 0, got {self.blocks!r}")
+        if not isinstance(self.overlap, int) or self.overlap < 0 or 2 * self.overlap > self.tile:
+            raise ValueError(f"overlap must be an integer with 0 <= 2 * overlap <= tile ({self.tile}), got {self.overlap!r}")
+        for name, allowed in (("tiling", TILINGS), ("kernels", KERNELS), ("head", HEADS)):
+            if getattr(self, name) not in allowed:
+                raise ValueError(f"{name} must be one of {allowed}, got {getattr(self, name)!r}")
+
+    @property
+    def layout(self) -> tuple[int, int, int, int]:
+        """``(rows, cols, core, overlap)`` of the tile grid actually used."""
+        if self.tiling == "none":
+            return 1, 1, max(self.image_height, self.image_width), 0
+        t = self.tile
+        t_o = 0 if self.tiling == "no_overlap" else self.overlap
+        return math.ceil(self.image_height / t), math.ceil(self.image_width / t), t, t_o
+
+    @property
+    def num_tiles(self) -> int:
+        rows, cols, _, _ = self.layout
+        return rows * cols
+
+    def kernel_size(self, n: int) -> int:
+        """Kernel size of residual block n (1-based)."""
+        return 3 if self.kernels == "fixed3" else 2 * n + 1
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "ModelConfig":
+        known = {f.name for f in fields(cls)}
+        unknown = set(d) - known
+        if unknown:
+            raise ValueError(f"unknown model config keys {sorted(unknown)}; expected {sorted(known)}")
+        return cls(**d)
+
+
+def tile(x: torch.Tensor, layout: tuple[int, int, int, int]) -> torch.Tensor:
+    """Cut ``(B, C, H, W)`` into overlapping windows, concatenated along channels.
+
+    Returns ``(B, rows * cols * C, t + 2 t_o, t + 2 t_o)``, tile-major (tile k owns channels
+    ``k*C .. k*C + C - 1``). Padding: edge replication to ``rows * t x cols * t``, then
+    ``t_o`` all round.
+    """
+    rows, cols, t, t_o = layout
+    b, c, h, w = x.shape
+    pad = (t_o, t_o + cols * t - w, t_o, t_o + rows * t - h)
+    if any(pad):
+        x = F.pad(x, pad, mode="replicate")
+    win = t + 2 * t_o
+    tiles = [x[:, :, i * t : i * t + win, j * t : j * t + win] for i in range(rows) for j in range(cols)]
+    return torch.cat(tiles, dim=1)
+
+
+def untile(y: torch.Tensor, layout: tuple[int, int, int, int], height: int, width: int) -> torch.Tensor:
+    """Put windows back and average the overlaps; the inverse of :func:`tile` on its output.
+
+    ``y`` is ``(B, rows * cols * C, win, win)``; returns ``(B, C, height, width)``. With
+    ``2 t_o <= t`` windows of tiles two apart never overlap, so the four parity classes of the
+    grid are placed without summing and combined as ``((P00 + P01) + (P10 + P11)) / count``:
+    untouched tiles reassemble to the input bit for bit.
+    """
+    rows, cols, t, t_o = layout
+    b, n_c, win, _ = y.shape
+    c = n_c // (rows * cols)
+    hp, wp = rows * t + 2 * t_o, cols * t + 2 * t_o
+    canvases = [[y.new_zeros(b, c, hp, wp) for _ in range(2)] for _ in range(2)]
+    counts = [[torch.zeros(1, 1, hp, wp, dtype=y.dtype, device=y.device) for _ in range(2)] for _ in range(2)]
+    for i in range(rows):
+        for j in range(cols):
+            k = i * cols + j
+            sl = (slice(None), slice(None), slice(i * t, i * t + win), slice(j * t, j * t + win))
+            canvases[i % 2][j % 2][sl] = y[:, k * c : (k + 1) * c]
+            counts[i % 2][j % 2][sl] = 1.0
+    total = (canvases[0][0] + canvases[0][1]) + (canvases[1][0] + canvases[1][1])
+    count = (counts[0][0] + counts[0][1]) + (counts[1][0] + counts[1][1])
+    return (total / count)[:, :, t_o : t_o + height, t_o : t_o + width]
+
+
+class PerChannelConv(nn.Module):
+    """Depthwise (per-channel) ``k x k`` convolution with zero 'same' padding and bias.
+
+    Direct convolution below the threshold, FFT convolution from it up (``fft_min_kernel``
+    without gradients, ``fft_min_kernel_train`` with): the same function and gradients to
+    float rounding.
+    """
+
+    def __init__(self, channels: int, kernel_size: int, fft_min_kernel: int = 15, fft_min_kernel_train: int = 5) -> None:
+        super().__init__()
+        if kernel_size % 2 == 0:
+            raise ValueError(f"kernel_size must be odd, got {kernel_size}")
+        self.conv = nn.Conv2d(channels, channels, kernel_size, padding=kernel_size // 2, groups=channels)
+        self.kernel_size = kernel_size
+        self.fft_min_kernel, self.fft_min_kernel_train = fft_min_kernel, fft_min_kernel_train
+
+    def use_fft(self) -> bool:
+        grad = torch.is_grad_enabled() and self.conv.weight.requires_grad
+        return self.kernel_size >= (self.fft_min_kernel_train if grad else self.fft_min_kernel)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if not self.use_fft():
+            return self.conv(x)
+        # F.conv2d correlates; the FFT helper convolves: flip the kernel.
+        k = self.conv.weight.flip(-1, -2).transpose(0, 1)  # (1, C, k, k)
+        return fft_convolve2d(x, k) + self.conv.bias[None, :, None, None]
+
+
+class ResidualBlock(nn.Module):
+    """``x + conv_b(relu(conv_a(x)))`` with per-channel convolutions of one size."""
+
+    def __init__(self, channels: int, kernel_size: int, fft_min_kernel: int = 15, fft_min_kernel_train: int = 5) -> None:
+        super().__init__()
+        self.conv_a = PerChannelConv(channels, kernel_size, fft_min_kernel, fft_min_kernel_train)
+        self.conv_b = PerChannelConv(channels, kernel_size, fft_min_kernel, fft_min_kernel_train)
+        nn.init.zeros_(self.conv_b.conv.weight)  # zero-init residual: the block starts as identity
+        nn.init.zeros_(self.conv_b.conv.bias)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x + self.conv_b(F.relu(self.conv_a(x)))
+
+
+class NeuralBokeh(nn.Module):
+    """The tiled per-channel residual network. See the module doc for the architecture."""
+
+    def __init__(self, config: ModelConfig) -> None:
+        super().__init__()
+        self.config = config
+        n, f = config.num_tiles, config.features
+        self.c1 = nn.Conv2d(4 * n, f * n, 1, groups=n)
+        self.blocks = nn.ModuleList(
+            ResidualBlock(f * n, config.kernel_size(i), config.fft_min_kernel, config.fft_min_kernel_train)
+            for i in range(1, config.blocks + 1)
+        )
+        self.c2 = nn.Conv2d((f + 3) * n, 3 * n, 1, groups=n)
+        if config.head == "identity":
+            nn.init.zeros_(self.c2.weight)
+            nn.init.zeros_(self.c2.bias)
+
+    def forward_tiles(self, x: torch.Tensor) -> torch.Tensor:
+        """``(B, 4, H, W)`` -> per-tile outputs ``(B, tiles * 3, win, win)`` before reassembly."""
+        cfg = self.config
+        if x.ndim != 4 or x.shape[1] != 4 or tuple(x.shape[2:]) != (cfg.image_height, cfg.image_width):
+            raise ValueError(
+                f"input must have shape (B, 4, {cfg.image_height}, {cfg.image_width}) for this model, got {tuple(x.shape)}"
+            )
+        n, f = cfg.num_tiles, cfg.features
+        xt = tile(x, cfg.layout)  # (B, n*4, win, win)
+        b, _, win, _ = xt.shape
+        h = self.c1(xt)
+        for block in self.blocks:
+            h = block(h)
+        rgb = xt.view(b, n, 4, win, win)[:, :, :3]
+        z = torch.cat([h.view(b, n, f, win, win), rgb], dim=2).view(b, n * (f + 3), win, win)
+        out = torch.tanh(self.c2(z))
+        if cfg.head == "identity":
+            t = out.clamp(-_TANH_LIMIT, _TANH_LIMIT)
+            r = rgb.reshape(b, n * 3, win, win)
+            out = (r + t) / (1.0 + r * t)  # = tanh(atanh(r) + d)
+        return out
+
+    def forward(self, x: torch.Tensor, return_tiles: bool = False) -> torch.Tensor:
+        """``(B, 4, H, W)`` -> ``(B, 3, H, W)`` normalised defocused RGB (or the un-blended
+        tiles ``(B, tiles * 3, win, win)`` with ``return_tiles``, for the per-tile loss)."""
+        cfg = self.config
+        tiles = self.forward_tiles(x)
+        return tiles if return_tiles else untile(tiles, cfg.layout, cfg.image_height, cfg.image_width)
+
+    def tile_targets(self, y: torch.Tensor) -> torch.Tensor:
+        """Cut a target ``(B, 3, H, W)`` into the same windows (for the per-tile-loss ablation)."""
+        return tile(y, self.config.layout)

@@ -1,0 +1,214 @@
+"""Typed training configuration, loaded from TOML with command-line overrides.
+
+A config file has three tables, ``[data]``, ``[model]`` and ``[train]``, whose keys are the
+fields of the dataclasses below; a top-level ``extends = "other.toml"`` (relative to the file)
+starts from another config. Unknown keys and wrong types are errors. Overrides are
+``section.key=value`` with TOML values (``train.steps=50``, ``data.roots=["a", "b"]``); a value
+that is not valid TOML is taken as a string (``train.out_dir=runs/x``).
+"""
+
+from __future__ import annotations
+
+import tomllib
+import types
+import typing
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+from ..model import HEADS, KERNELS, TILINGS
+
+
+@dataclass
+class DataConfig:
+    """Where the focal stacks are and how they are split and normalised.
+
+    Args:
+        roots: dataset folders (relative paths are relative to the working directory).
+        test_fraction: share of scenes held out for evaluation, in [0, 1).
+        split_seed: seed of the scene-level split.
+        normalization_scale: linear value mapped to 0 by :class:`neuralbokeh.data.Normalization`.
+        cache: keep loaded samples in memory (small datasets).
+    """
+
+    roots: list[str] = field(default_factory=list)
+    test_fraction: float = 0.2
+    split_seed: int = 0
+    normalization_scale: float = 0.18
+    cache: bool = True
+
+
+@dataclass
+class ModelSection:
+    """Network hyper-parameters (see :class:`neuralbokeh.model.ModelConfig`); the image size comes
+    from the data. ``blocks = "auto"`` takes N from the data's largest CoC."""
+
+    blocks: int | str = "auto"
+    features: int = 12
+    tile: int = 200
+    overlap: int = 60
+    tiling: str = "overlap"
+    kernels: str = "growing"
+    head: str = "identity"
+    fft_min_kernel: int = 15
+    fft_min_kernel_train: int = 5
+
+
+@dataclass
+class TrainSection:
+    """The optimisation.
+
+    Args:
+        steps: optimiser steps.
+        batch_size: samples per step over all processes (divisible by the process count).
+        lr: Adam learning rate.
+        lr_schedule: ``"cosine"`` (to 10% of lr) or ``"constant"``, after ``warmup_steps``.
+        warmup_steps: linear warm-up steps.
+        grad_clip: clip the gradient norm to this value (0 = off).
+        loss: ``"image"`` (MSE of the reassembled image, the paper) or ``"tile"`` (ablation).
+        seed: seed of initialisation and data order.
+        eval_every: steps between held-out evaluations (and at the end).
+        checkpoint_every: steps between checkpoints (and at the end).
+        max_nonfinite: abort after this many non-finite steps in a row.
+        out_dir: folder for checkpoints and logs.
+        threads: torch CPU threads per process (0 = torch's default).
+    """
+
+    steps: int = 1000
+    batch_size: int = 4
+    lr: float = 2e-3
+    lr_schedule: str = "cosine"
+    warmup_steps: int = 20
+    grad_clip: float = 1.0
+    loss: str = "image"
+    seed: int = 0
+    eval_every: int = 200
+    checkpoint_every: int = 200
+    max_nonfinite: int = 5
+    out_dir: str = "runs/default"
+    threads: int = 0
+
+
+@dataclass
+class TrainConfig:
+    data: DataConfig = field(default_factory=DataConfig)
+    model: ModelSection = field(default_factory=ModelSection)
+    train: TrainSection = field(default_factory=TrainSection)
+
+    def __post_init__(self) -> None:
+        d, m, t = self.data, self.model, self.train
+        if not d.roots:
+            raise ValueError("data.roots must name at least one dataset folder")
+        if not (0.0 <= d.test_fraction < 1.0):
+            raise ValueError(f"data.test_fraction must be in [0, 1), got {d.test_fraction}")
+        if not (isinstance(m.blocks, int) and m.blocks >= 0) and m.blocks != "auto":
+            raise ValueError(f"model.blocks must be an integer >= 0 or 'auto', got {m.blocks!r}")
+        for name, value, allowed in (
+            ("model.tiling", m.tiling, TILINGS),
+            ("model.kernels", m.kernels, KERNELS),
+            ("model.head", m.head, HEADS),
+            ("train.lr_schedule", t.lr_schedule, ("cosine", "constant")),
+            ("train.loss", t.loss, ("image", "tile")),
+        ):
+            if value not in allowed:
+                raise ValueError(f"{name} must be one of {allowed}, got {value!r}")
+        for name in ("steps", "batch_size", "eval_every", "checkpoint_every", "max_nonfinite"):
+            if getattr(t, name) < 1:
+                raise ValueError(f"train.{name} must be >= 1, got {getattr(t, name)}")
+        if t.lr <= 0 or t.grad_clip < 0 or t.warmup_steps < 0 or t.threads < 0:
+            raise ValueError("train.lr must be > 0 and train.grad_clip, warmup_steps, threads >= 0")
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+_SECTIONS = {"data": DataConfig, "model": ModelSection, "train": TrainSection}
+
+
+def _check_type(where: str, value: Any, hint: Any) -> Any:
+    """Return ``value`` converted where lossless (int -> float), else raise ``TypeError``."""
+    origin = typing.get_origin(hint)
+    if origin in (typing.Union, types.UnionType):
+        for option in typing.get_args(hint):
+            try:
+                return _check_type(where, value, option)
+            except TypeError:
+                pass
+        raise TypeError(f"{where} must be {hint}, got {value!r} ({type(value).__name__})")
+    if origin is list:
+        (inner,) = typing.get_args(hint)
+        if not isinstance(value, list):
+            raise TypeError(f"{where} must be a list, got {value!r} ({type(value).__name__})")
+        return [_check_type(f"{where}[{i}]", v, inner) for i, v in enumerate(value)]
+    if hint is float and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    if hint is int and isinstance(value, bool) or not isinstance(value, hint):
+        raise TypeError(f"{where} must be {getattr(hint, '__name__', hint)}, got {value!r} ({type(value).__name__})")
+    return value
+
+
+def _merge(base: dict[str, Any], extra: dict[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for key, value in extra.items():
+        out[key] = _merge(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else value
+    return out
+
+
+def _read_toml(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
+    path = path.resolve()
+    if path in seen:
+        raise ValueError(f"config {path} extends itself (cycle: {' -> '.join(map(str, seen))})")
+    if not path.is_file():
+        raise FileNotFoundError(f"no such config file: {path}")
+    try:
+        raw = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as e:
+        raise ValueError(f"{path}: invalid TOML: {e}") from None
+    parent = raw.pop("extends", None)
+    if parent is None:
+        return raw
+    return _merge(_read_toml(path.parent / parent, seen + (path,)), raw)
+
+
+def parse_override(text: str) -> tuple[str, str, Any]:
+    """``"section.key=value"`` -> (section, key, value) with the value parsed as TOML."""
+    lhs, sep, rhs = text.partition("=")
+    section, dot, key = lhs.strip().partition(".")
+    if not sep or not dot or not key:
+        raise ValueError(f"override must look like section.key=value, got {text!r}")
+    try:
+        value = tomllib.loads(f"v = {rhs}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = rhs.strip()
+    return section, key, value
+
+
+def build_config(raw: dict[str, Any], source: str = "config") -> TrainConfig:
+    """Typed :class:`TrainConfig` from a nested dict; unknown keys and wrong types raise."""
+    unknown = set(raw) - set(_SECTIONS)
+    if unknown:
+        raise ValueError(f"{source}: unknown section(s) {sorted(unknown)}; expected {sorted(_SECTIONS)}")
+    parts = {}
+    for name, cls in _SECTIONS.items():
+        values = dict(raw.get(name, {}))
+        hints = typing.get_type_hints(cls)
+        known = {f.name for f in fields(cls)}
+        bad = set(values) - known
+        if bad:
+            raise ValueError(f"{source}: unknown key(s) {sorted(bad)} in [{name}]; expected {sorted(known)}")
+        parts[name] = cls(**{k: _check_type(f"{name}.{k}", v, hints[k]) for k, v in values.items()})
+    return TrainConfig(**parts)
+
+
+def load_config(path: str | Path, overrides: list[str] | None = None) -> TrainConfig:
+    """Load a TOML config (following ``extends``) and apply ``section.key=value`` overrides.
+
+    Raises:
+        FileNotFoundError: the file (or one it extends) is missing.
+        ValueError / TypeError: invalid TOML, unknown keys, wrong types or values.
+    """
+    raw = _read_toml(Path(path))
+    for text in overrides or []:
+        section, key, value = parse_override(text)
+        raw.setdefault(section, {})[key] = value
+    return build_config(raw, str(path))

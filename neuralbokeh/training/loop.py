@@ -1,0 +1,325 @@
+"""The training loop: seeded, resumable bit for bit on CPU, single- or multi-process.
+
+Multi-process: started by ``torchrun`` (``WORLD_SIZE`` > 1), it uses gloo on CPU and nccl on
+GPU, a ``DistributedSampler`` over the training scenes' samples, and rank 0 for logging,
+evaluation and checkpoints. Data order is a pure function of (seed, step), which is what makes
+``resume`` continue exactly where a run stopped.
+
+Loss: MSE of the reassembled image in the normalised space (``loss = "tile"``: MSE of the
+un-blended tiles, the paper's ablation). A step whose loss or gradient is not finite is skipped
+and counted; ``max_nonfinite`` in a row abort with the step and the batch's scenes named.
+
+Evaluation (held-out scenes): PSNR and SSIM (kornia) of the normalised images mapped to [0, 1]
+(``(n + 1) / 2``), next to two baselines on the same samples: the identity (the all-in-focus
+image returned unchanged) and a CoC-driven Gaussian blur (the scatter renderer with a Gaussian
+profile, sigma = CoC / 4).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import math
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+import torch
+import torch.distributed as dist
+import torch.nn.functional as F
+from kornia.metrics import psnr, ssim
+from torch.nn.parallel import DistributedDataParallel
+from torch.utils.data.distributed import DistributedSampler
+from tqdm import tqdm
+
+from ..apertures import ApertureModel, Gaussian
+from ..data import FocalStackDataset, Normalization
+from ..model import ModelConfig, NeuralBokeh
+from ..optics import blocks_for_coc
+from ..render import scatter_defocus
+from .checkpoint import load_checkpoint, save_checkpoint
+from .config import TrainConfig
+
+log = logging.getLogger(__name__)
+
+CSV_FIELDS = [
+    "step", "loss", "lr", "skipped", "eval_psnr", "eval_ssim",
+    "identity_psnr", "identity_ssim", "gaussian_psnr", "gaussian_ssim", "elapsed_s",
+]
+
+
+def _same_across_scenes(ds: FocalStackDataset, key: str) -> Any:
+    values = {json.dumps(m[key], sort_keys=True) for m in ds.metas}
+    if len(values) != 1:
+        raise ValueError(f"all scenes of one model must share {key!r}; found {len(values)} different ones: {sorted(values)}")
+    return ds.metas[0][key]
+
+
+def model_config_for(cfg: TrainConfig, train_ds: FocalStackDataset) -> ModelConfig:
+    """The network for this config and data (image size from the data, N from its largest CoC)."""
+    size = _same_across_scenes(train_ds, "image_size")
+    m = cfg.model
+    blocks = blocks_for_coc(train_ds.max_coc_px) if m.blocks == "auto" else int(m.blocks)
+    return ModelConfig(
+        image_height=size["height"], image_width=size["width"], blocks=blocks, features=m.features,
+        tile=m.tile, overlap=m.overlap, tiling=m.tiling, kernels=m.kernels, head=m.head,
+        fft_min_kernel=m.fft_min_kernel, fft_min_kernel_train=m.fft_min_kernel_train,
+    )
+
+
+def compute_loss(model: torch.nn.Module, x: torch.Tensor, y: torch.Tensor, kind: str) -> torch.Tensor:
+    """MSE of the reassembled image (``"image"``) or of the un-blended tiles (``"tile"``)."""
+    if kind == "tile":
+        inner = model.module if isinstance(model, DistributedDataParallel) else model
+        return F.mse_loss(model(x, return_tiles=True), inner.tile_targets(y))
+    return F.mse_loss(model(x), y)
+
+
+def _lr_factor(step: int, cfg: TrainConfig) -> float:
+    t = cfg.train
+    if step < t.warmup_steps:
+        return (step + 1) / t.warmup_steps
+    if t.lr_schedule == "constant":
+        return 1.0
+    progress = (step - t.warmup_steps) / max(1, t.steps - t.warmup_steps)
+    return 0.1 + 0.9 * 0.5 * (1.0 + math.cos(math.pi * min(1.0, progress)))
+
+
+class _Samples:
+    """Dataset items as batched tensors, optionally cached in memory."""
+
+    def __init__(self, ds: FocalStackDataset, cache: bool) -> None:
+        self.ds, self.cache, self.store = ds, cache, {}
+
+    def item(self, i: int) -> dict[str, Any]:
+        if i in self.store:
+            return self.store[i]
+        it = self.ds[i]
+        if self.cache:
+            self.store[i] = it
+        return it
+
+    def batch(self, indices: list[int], device: torch.device) -> tuple[torch.Tensor, torch.Tensor, list[str]]:
+        items = [self.item(i) for i in indices]
+        x = torch.stack([torch.cat([it["aif"], it["coc"]], 0) for it in items]).to(device)
+        y = torch.stack([it["defocus"] for it in items]).to(device)
+        return x, y, [f"{it['scene']}#{it['slice']}" for it in items]
+
+
+def _metrics(pred: torch.Tensor, target: torch.Tensor) -> tuple[float, float]:
+    a, b = (pred + 1) / 2, (target + 1) / 2
+    return float(psnr(a, b, 1.0)), float(ssim(a, b, 11).mean())
+
+
+@torch.no_grad()
+def evaluate(model: NeuralBokeh, samples: _Samples, device: torch.device, baselines: dict | None = None) -> dict[str, float]:
+    """Mean PSNR/SSIM over held-out samples for the model and (computed once) the baselines."""
+    model.eval()
+    ds = samples.ds
+    norm: Normalization = ds.normalization
+    gauss = ApertureModel(Gaussian(0.5))
+    sums = {"eval_psnr": 0.0, "eval_ssim": 0.0}
+    todo = baselines is None
+    base = {k: 0.0 for k in ("identity_psnr", "identity_ssim", "gaussian_psnr", "gaussian_ssim")}
+    for i in range(len(ds)):
+        x, y, _ = samples.batch([i], device)
+        p, s = _metrics(model(x), y)
+        sums["eval_psnr"] += p
+        sums["eval_ssim"] += s
+        if todo:
+            rgb = x[:, :3]
+            p, s = _metrics(rgb, y)
+            base["identity_psnr"] += p
+            base["identity_ssim"] += s
+            linear = norm.decode(rgb.double())
+            blurred = scatter_defocus(linear, x[:, 3:].double() * ds.coc_scale_px, gauss)
+            p, s = _metrics(norm.encode(blurred).float(), y)
+            base["gaussian_psnr"] += p
+            base["gaussian_ssim"] += s
+    n = max(len(ds), 1)
+    out = {k: v / n for k, v in sums.items()}
+    out.update(baselines if not todo else {k: v / n for k, v in base.items()})
+    model.train()
+    return out
+
+
+def _digest(model: torch.nn.Module) -> str:
+    import hashlib
+
+    h = hashlib.sha256()
+    for name, t in sorted(model.state_dict().items()):
+        h.update(name.encode())
+        h.update(t.detach().cpu().contiguous().numpy().tobytes())
+    return h.hexdigest()
+
+
+def train(
+    cfg: TrainConfig, resume: str | os.PathLike | None = None, progress: bool = True, stop_at: int | None = None
+) -> dict[str, Any]:
+    """Train from a config; returns a summary (final metrics, checkpoint path, skipped steps).
+
+    Args:
+        cfg: the training configuration.
+        resume: a checkpoint written by this function to continue from (same config).
+        progress: show a tqdm progress bar (rank 0).
+        stop_at: stop (with a checkpoint) after this step, e.g. to fit a job's time limit;
+            ``resume`` continues exactly as if the run had not stopped.
+
+    Raises:
+        ValueError: inconsistent data, a dataset too small for the batch, a checkpoint from
+            another model config.
+        RuntimeError: ``max_nonfinite`` non-finite steps in a row.
+    """
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    distributed = world > 1
+    if distributed and not dist.is_initialized():
+        dist.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
+    rank = dist.get_rank() if distributed else 0
+    local_rank = int(os.environ.get("LOCAL_RANK", "0"))
+    device = torch.device(f"cuda:{local_rank}") if torch.cuda.is_available() else torch.device("cpu")
+    if cfg.train.threads:
+        torch.set_num_threads(cfg.train.threads)
+    t = cfg.train
+    if t.batch_size % world:
+        raise ValueError(f"train.batch_size ({t.batch_size}) must be divisible by the number of processes ({world})")
+    per_rank = t.batch_size // world
+    out_dir = Path(t.out_dir)
+
+    norm = Normalization(cfg.data.normalization_scale)
+    split = {"test_fraction": cfg.data.test_fraction, "split_seed": cfg.data.split_seed, "normalization": norm}
+    train_ds = FocalStackDataset(cfg.data.roots, "train" if cfg.data.test_fraction > 0 else "all", **split)
+    test_ds = FocalStackDataset(cfg.data.roots, "test", **split) if cfg.data.test_fraction > 0 else None
+    lens = _same_across_scenes(train_ds, "lens")
+    aperture = _same_across_scenes(train_ds, "aperture")
+    mcfg = model_config_for(cfg, train_ds)
+
+    torch.manual_seed(t.seed)
+    model = NeuralBokeh(mcfg).to(device)
+    optimizer = torch.optim.Adam(model.parameters(), lr=t.lr)
+    start, skipped, history = 0, 0, {}
+    if resume:
+        ck = load_checkpoint(resume, map_location=device)
+        if ck["model_config"] != mcfg.to_dict():
+            raise ValueError(f"checkpoint {resume} is for model {ck['model_config']}, this config builds {mcfg.to_dict()}")
+        model.load_state_dict(ck["model_state"])
+        optimizer.load_state_dict(ck["optimizer_state"])
+        start, skipped = ck["step"], ck["skipped_steps"]
+        torch.set_rng_state(ck["rng_state"])
+    net = DistributedDataParallel(model) if distributed else model
+
+    sampler = DistributedSampler(train_ds, num_replicas=world, rank=rank, shuffle=True, seed=t.seed, drop_last=True)
+    steps_per_epoch = len(sampler) // per_rank
+    if steps_per_epoch < 1:
+        raise ValueError(f"{len(train_ds)} training samples are too few for batch_size {t.batch_size}")
+    samples = _Samples(train_ds, cfg.data.cache)
+    test_samples = _Samples(test_ds, cfg.data.cache) if test_ds else None
+
+    lead = rank == 0
+    if lead:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        (out_dir / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2))
+        new_log = not (resume and (out_dir / "log.csv").exists())
+        csv_file = open(out_dir / "log.csv", "w" if new_log else "a", newline="")
+        writer = csv.DictWriter(csv_file, CSV_FIELDS)
+        if new_log:
+            writer.writeheader()
+        try:
+            from torch.utils.tensorboard import SummaryWriter
+
+            board = SummaryWriter(str(out_dir / "tensorboard"))
+        except ImportError:
+            board = None
+        log.info("model %s: %d tiles, N=%d, %d parameters", mcfg.to_dict(), mcfg.num_tiles, mcfg.blocks,
+                 sum(p.numel() for p in model.parameters()))
+
+    def checkpoint(step: int, metrics: dict) -> Path:
+        return save_checkpoint(out_dir / "checkpoint.pt", {
+            "model_config": mcfg.to_dict(), "model_state": model.state_dict(),
+            "optimizer_state": optimizer.state_dict(),
+            "step": step, "skipped_steps": skipped, "rng_state": torch.get_rng_state(),
+            "train_config": cfg.to_dict(), "lens": lens, "aperture": aperture,
+            "normalization": norm.to_dict(), "coc_scale_px": train_ds.coc_scale_px,
+            "max_coc_px": train_ds.max_coc_px, "metrics": metrics,
+        })
+
+    baselines, metrics, consecutive, order, order_epoch = None, {}, 0, [], -1
+    t0 = time.perf_counter()
+    bar = tqdm(total=t.steps, initial=start, desc="train", unit="step", disable=not (progress and lead))
+    last = t.steps if stop_at is None else min(t.steps, stop_at)
+    for step in range(start, last):
+        epoch, pos = divmod(step, steps_per_epoch)
+        if epoch != order_epoch:
+            sampler.set_epoch(epoch)
+            order, order_epoch = list(sampler), epoch
+        x, y, names = samples.batch(order[pos * per_rank : (pos + 1) * per_rank], device)
+        for group in optimizer.param_groups:  # the schedule is a function of the step alone
+            group["lr"] = t.lr * _lr_factor(step, cfg)
+        optimizer.zero_grad(set_to_none=True)
+        loss = compute_loss(net, x, y, t.loss)
+        loss.backward()
+        finite = torch.tensor(
+            [float(torch.isfinite(loss)) * float(all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None))],
+            device=device,
+        )
+        if distributed:
+            dist.all_reduce(finite, op=dist.ReduceOp.MIN)
+        if finite.item() < 1.0:
+            skipped += 1
+            consecutive += 1
+            optimizer.zero_grad(set_to_none=True)
+            log.warning("step %d: non-finite loss or gradient, step skipped (scenes %s)", step + 1, names)
+            if consecutive >= t.max_nonfinite:
+                raise RuntimeError(
+                    f"{consecutive} non-finite steps in a row, the last at step {step + 1} "
+                    f"(batch scenes on rank {rank}: {', '.join(names)}); lower train.lr or check the data"
+                )
+        else:
+            consecutive = 0
+            if t.grad_clip > 0:
+                torch.nn.utils.clip_grad_norm_(model.parameters(), t.grad_clip)
+            optimizer.step()
+        done = step + 1
+        row = {"step": done, "loss": loss.item(), "lr": optimizer.param_groups[0]["lr"], "skipped": skipped}
+        if done % t.eval_every == 0 or done == t.steps:
+            if lead and test_samples:
+                metrics = evaluate(model, test_samples, device, baselines)
+                baselines = {k: v for k, v in metrics.items() if not k.startswith("eval_")}
+                row.update(metrics)
+                bar.set_postfix(psnr=f"{metrics['eval_psnr']:.2f}", gauss=f"{metrics['gaussian_psnr']:.2f}")
+            if distributed:
+                dist.barrier()
+        if lead:
+            row["elapsed_s"] = round(time.perf_counter() - t0, 3)
+            writer.writerow(row)
+            csv_file.flush()
+            if board:
+                for k, v in row.items():
+                    if k != "step":
+                        board.add_scalar(k, v, done)
+            if done % t.checkpoint_every == 0 or done == last:
+                checkpoint(done, metrics)
+        bar.update()
+    bar.close()
+
+    digests = [_digest(model)]
+    if distributed:
+        gathered: list[Any] = [None] * world
+        dist.all_gather_object(gathered, digests[0])
+        digests = gathered
+    summary = {
+        "checkpoint": str((out_dir / "checkpoint.pt").resolve()), "steps": last, "skipped_steps": skipped,
+        "metrics": metrics, "model": mcfg.to_dict(), "world_size": world, "rank_weight_digests": digests,
+        "train_samples": len(train_ds), "test_samples": len(test_ds) if test_ds else 0,
+        "seconds": round(time.perf_counter() - t0, 1),
+    }
+    if lead:
+        csv_file.close()
+        if board:
+            board.close()
+        (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+    if distributed:
+        dist.barrier()
+        dist.destroy_process_group()
+    return summary

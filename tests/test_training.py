@@ -1,0 +1,175 @@
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from neuralbokeh.model import ModelConfig
+from neuralbokeh.training import load_config, load_model, train
+from neuralbokeh.training import loop as loop_module
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _config(tmp_path, data, **train_overrides):
+    text = f"""
+[data]
+roots = ["{data}"]
+test_fraction = 0.2
+cache = true
+
+[model]
+blocks = "auto"
+features = 4
+tile = 16
+overlap = 4
+
+[train]
+steps = 4
+batch_size = 2
+lr = 1e-3
+warmup_steps = 1
+eval_every = 2
+checkpoint_every = 2
+seed = 3
+out_dir = "{tmp_path / 'run'}"
+threads = 1
+"""
+    tmp_path.mkdir(parents=True, exist_ok=True)
+    path = tmp_path / "cfg.toml"
+    path.write_text(text)
+    return load_config(path, [f"train.{k}={v}" for k, v in train_overrides.items()])
+
+
+# --- configs -------------------------------------------------------------------------------------
+
+
+def test_shipped_configs_load_and_ablations_differ_as_named():
+    base = load_config(ROOT / "configs" / "quickstart.toml")
+    assert base.model.blocks == "auto" and base.train.loss == "image"
+    paper = load_config(ROOT / "configs" / "paper.toml")
+    assert (paper.model.tile, paper.model.overlap) == (200, 60)
+    expected = {
+        "fixed3_kernels": ("model", "kernels", "fixed3"),
+        "no_tiling": ("model", "tiling", "none"),
+        "no_overlap": ("model", "tiling", "no_overlap"),
+        "tile_loss": ("train", "loss", "tile"),
+        "paper_head": ("model", "head", "paper"),
+    }
+    for name, (section, key, value) in expected.items():
+        cfg = load_config(ROOT / "configs" / "ablations" / f"{name}.toml")
+        assert getattr(getattr(cfg, section), key) == value
+        assert cfg.data.roots == base.data.roots and cfg.train.steps == base.train.steps
+        assert cfg.train.out_dir == f"runs/{name}"
+
+
+def test_config_errors(tmp_path):
+    good = ROOT / "configs" / "quickstart.toml"
+    with pytest.raises(ValueError, match=r"unknown key\(s\) \['stepz'\] in \[train\]"):
+        load_config(good, ["train.stepz=3"])
+    with pytest.raises(TypeError, match="train.steps must be int, got 'ten'"):
+        load_config(good, ["train.steps=ten"])
+    with pytest.raises(TypeError, match="train.lr must be float"):
+        load_config(good, ["train.lr=true"])
+    with pytest.raises(ValueError, match="model.tiling must be one of"):
+        load_config(good, ["model.tiling=grid"])
+    with pytest.raises(ValueError, match="section.key=value"):
+        load_config(good, ["steps=3"])
+    with pytest.raises(ValueError, match=r"unknown section\(s\) \['optim'\]"):
+        load_config(good, ["optim.lr=1.0"])
+    assert load_config(good, ["train.lr=1", "data.roots=['a', 'b']"]).train.lr == 1.0
+    (tmp_path / "a.toml").write_text('extends = "b.toml"\n')
+    (tmp_path / "b.toml").write_text('extends = "a.toml"\n')
+    with pytest.raises(ValueError, match="extends itself"):
+        load_config(tmp_path / "a.toml")
+    with pytest.raises(FileNotFoundError, match="no such config"):
+        load_config(tmp_path / "missing.toml")
+
+
+# --- training ------------------------------------------------------------------------------------
+
+
+def test_train_writes_checkpoint_log_and_metrics(tiny_dataset, tmp_path):
+    cfg = _config(tmp_path, tiny_dataset)
+    summary = train(cfg, progress=False)
+    ck_path = Path(summary["checkpoint"])
+    model, ck = load_model(ck_path)
+    assert isinstance(model.config, ModelConfig) and model.config.image_height == 32 and model.config.image_width == 40
+    assert ck["model_config"]["blocks"] == 4  # max |CoC| 8.0 px -> N = 4
+    assert ck["lens"]["focal_length_mm"] == 85.0 and ck["aperture"]["cat_eye"] == 0.5
+    assert ck["normalization"]["kind"] == "mobius-log" and ck["coc_scale_px"] > 1
+    m = summary["metrics"]
+    for key in ("eval_psnr", "eval_ssim", "identity_psnr", "gaussian_psnr", "gaussian_ssim"):
+        assert key in m and m[key] == m[key]  # present and not NaN
+    rows = (tmp_path / "run" / "log.csv").read_text().splitlines()
+    assert rows[0].startswith("step,loss,lr,skipped") and len(rows) == 5
+    assert json.loads((tmp_path / "run" / "summary.json").read_text())["steps"] == 4
+
+
+def test_resume_continues_bit_for_bit(tiny_dataset, tmp_path):
+    straight = train(_config(tmp_path / "a", tiny_dataset, steps=6), progress=False)
+    first = train(_config(tmp_path / "b", tiny_dataset, steps=6), progress=False, stop_at=3)
+    assert first["steps"] == 3
+    resumed = train(_config(tmp_path / "b", tiny_dataset, steps=6), resume=first["checkpoint"], progress=False)
+    a = torch.load(straight["checkpoint"], weights_only=False)
+    b = torch.load(resumed["checkpoint"], weights_only=False)
+    assert a["step"] == b["step"] == 6
+    for key, value in a["model_state"].items():
+        assert torch.equal(value, b["model_state"][key]), key
+    assert a["metrics"] == b["metrics"]
+
+
+def test_resume_refuses_another_model(tiny_dataset, tmp_path):
+    first = train(_config(tmp_path / "a", tiny_dataset, steps=2), progress=False)
+    other = _config(tmp_path / "b", tiny_dataset, steps=4)
+    other.model.features = 5
+    with pytest.raises(ValueError, match="checkpoint .* is for model"):
+        train(other, resume=first["checkpoint"], progress=False)
+
+
+def test_non_finite_steps_are_skipped_then_abort(tiny_dataset, tmp_path, monkeypatch):
+    real = loop_module.compute_loss
+    calls = {"n": 0}
+
+    def nan_on_steps_2_and_3(model, x, y, kind):
+        calls["n"] += 1
+        loss = real(model, x, y, kind)
+        return loss * float("nan") if calls["n"] in (2, 3) else loss
+
+    monkeypatch.setattr(loop_module, "compute_loss", nan_on_steps_2_and_3)
+    summary = train(_config(tmp_path / "a", tiny_dataset, steps=5, max_nonfinite=3), progress=False)
+    assert summary["skipped_steps"] == 2
+    log = (tmp_path / "a" / "run" / "log.csv").read_text().splitlines()
+    assert [r.split(",")[3] for r in log[1:]] == ["0", "1", "2", "2", "2"]
+
+    monkeypatch.setattr(loop_module, "compute_loss", lambda m, x, y, k: real(m, x, y, k) * float("inf"))
+    with pytest.raises(RuntimeError, match=r"3 non-finite steps in a row, the last at step 3 \(batch scenes on rank 0: scene_000"):
+        train(_config(tmp_path / "b", tiny_dataset, steps=5, max_nonfinite=3), progress=False)
+
+
+@pytest.mark.parametrize("ablation", ["fixed3_kernels", "no_tiling", "no_overlap", "tile_loss", "paper_head"])
+def test_ablations_train(tiny_dataset, tmp_path, ablation):
+    cfg = load_config(
+        ROOT / "configs" / "ablations" / f"{ablation}.toml",
+        [f"data.roots=['{tiny_dataset}']", "train.steps=2", "train.batch_size=2", "train.eval_every=2",
+         f"train.out_dir='{tmp_path}'", "model.tile=16", "model.overlap=4", "model.features=3"],
+    )
+    summary = train(cfg, progress=False)
+    assert summary["metrics"]["eval_psnr"] > 0
+
+
+def test_two_processes_hold_identical_weights(tiny_dataset, tmp_path):
+    cfg = _config(tmp_path, tiny_dataset, steps=3)  # validates the file
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nnodes=1", "--nproc_per_node=2",
+           str(ROOT / "train.py"), str(tmp_path / "cfg.toml"), "train.steps=3"]
+    proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    summary = json.loads((Path(cfg.train.out_dir) / "summary.json").read_text())
+    assert summary["world_size"] == 2
+    digests = summary["rank_weight_digests"]
+    assert len(digests) == 2 and digests[0] == digests[1]
+    assert "checkpoint" in proc.stdout
