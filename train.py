@@ -20,6 +20,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("overrides", nargs="*", help="section.key=value, e.g. train.steps=50")
     p.add_argument("--resume", help="checkpoint to continue from (written by this tool with the same config)")
     p.add_argument("--stop-at", type=int, help="stop with a checkpoint after this step (continue with --resume)")
+    p.add_argument("--time-limit", type=float, help="stop with a final evaluation and checkpoint after this many minutes")
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
@@ -27,7 +28,8 @@ def main(argv: list[str] | None = None) -> int:
         cfg = load_config(args.config, args.overrides)
     except (FileNotFoundError, ValueError, TypeError) as e:
         raise SystemExit(f"error: {e}")
-    summary = train(cfg, resume=args.resume, stop_at=args.stop_at)
+    time_limit = None if args.time_limit is None else 60.0 * args.time_limit
+    summary = train(cfg, resume=args.resume, stop_at=args.stop_at, time_limit_s=time_limit)
     if int(os.environ.get("RANK", "0")) != 0:
         return 0
     m = summary["metrics"]

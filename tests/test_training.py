@@ -173,3 +173,9 @@ def test_two_processes_hold_identical_weights(tiny_dataset, tmp_path):
     digests = summary["rank_weight_digests"]
     assert len(digests) == 2 and digests[0] == digests[1]
     assert "checkpoint" in proc.stdout
+
+
+def test_time_limit_stops_with_evaluation_and_checkpoint(tiny_dataset, tmp_path):
+    summary = train(_config(tmp_path, tiny_dataset, steps=50, eval_every=40), progress=False, time_limit_s=0.0)
+    assert summary["steps"] == 1 and "eval_psnr" in summary["metrics"]
+    assert torch.load(summary["checkpoint"], weights_only=False)["step"] == 1

@@ -156,7 +156,11 @@ def _digest(model: torch.nn.Module) -> str:
 
 
 def train(
-    cfg: TrainConfig, resume: str | os.PathLike | None = None, progress: bool = True, stop_at: int | None = None
+    cfg: TrainConfig,
+    resume: str | os.PathLike | None = None,
+    progress: bool = True,
+    stop_at: int | None = None,
+    time_limit_s: float | None = None,
 ) -> dict[str, Any]:
     """Train from a config; returns a summary (final metrics, checkpoint path, skipped steps).
 
@@ -166,6 +170,8 @@ def train(
         progress: show a tqdm progress bar (rank 0).
         stop_at: stop (with a checkpoint) after this step, e.g. to fit a job's time limit;
             ``resume`` continues exactly as if the run had not stopped.
+        time_limit_s: stop (with a final evaluation and checkpoint) at the first step that ends
+            after this many seconds of training (budgets such as "30 minutes per variant").
 
     Raises:
         ValueError: inconsistent data, a dataset too small for the batch, a checkpoint from
@@ -248,7 +254,8 @@ def train(
     t0 = time.perf_counter()
     bar = tqdm(total=t.steps, initial=start, desc="train", unit="step", disable=not (progress and lead))
     last = t.steps if stop_at is None else min(t.steps, stop_at)
-    for step in range(start, last):
+    step = start
+    while step < last:
         epoch, pos = divmod(step, steps_per_epoch)
         if epoch != order_epoch:
             sampler.set_epoch(epoch)
@@ -280,9 +287,17 @@ def train(
             if t.grad_clip > 0:
                 torch.nn.utils.clip_grad_norm_(model.parameters(), t.grad_clip)
             optimizer.step()
-        done = step + 1
+        done = step = step + 1
+        if distributed and time_limit_s is not None:  # all ranks must agree on when to stop
+            elapsed = torch.tensor([time.perf_counter() - t0], dtype=torch.float64)
+            dist.broadcast(elapsed, 0)
+            out_of_time = float(elapsed) > time_limit_s
+        else:
+            out_of_time = time_limit_s is not None and time.perf_counter() - t0 > time_limit_s
+        if out_of_time:
+            last = done
         row = {"step": done, "loss": loss.item(), "lr": optimizer.param_groups[0]["lr"], "skipped": skipped}
-        if done % t.eval_every == 0 or done == t.steps:
+        if done % t.eval_every == 0 or done == last:
             if lead and test_samples:
                 metrics = evaluate(model, test_samples, device, baselines)
                 baselines = {k: v for k, v in metrics.items() if not k.startswith("eval_")}
