@@ -204,7 +204,7 @@ def train(
     torch.manual_seed(t.seed)
     model = NeuralBokeh(mcfg).to(device)
     optimizer = torch.optim.Adam(model.parameters(), lr=t.lr)
-    start, skipped, history = 0, 0, {}
+    start, skipped = 0, 0
     if resume:
         ck = load_checkpoint(resume, map_location=device)
         if ck["model_config"] != mcfg.to_dict():
