@@ -179,3 +179,15 @@ def test_time_limit_stops_with_evaluation_and_checkpoint(tiny_dataset, tmp_path)
     summary = train(_config(tmp_path, tiny_dataset, steps=50, eval_every=40), progress=False, time_limit_s=0.0)
     assert summary["steps"] == 1 and "eval_psnr" in summary["metrics"]
     assert torch.load(summary["checkpoint"], weights_only=False)["step"] == 1
+
+
+def test_model_section_mirrors_model_config():
+    # [model] is ModelConfig less what the data decides (image size); a field added to one
+    # must be added to the other.
+    from dataclasses import fields
+
+    from neuralbokeh.training.config import ModelSection
+
+    section = {f.name for f in fields(ModelSection)}
+    resolved = {f.name for f in fields(ModelConfig)} - {"image_height", "image_width"}
+    assert section == resolved
