@@ -1,4 +1,4 @@
-"""The on-disk focal-stack dataset, its loader and the HDR <-> [-1, 1] normalisation.
+"""The on-disk focal-stack dataset and its loader (the normalisation lives in ``normalization``).
 
 Format (``format_version`` 1): one folder per scene (any name not starting with ``.``)::
 
@@ -21,7 +21,6 @@ import os
 import random
 import shutil
 import tempfile
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -29,8 +28,9 @@ import numpy as np
 import torch
 
 from .apertures import ApertureModel
-from .checks import check_at_least, check_finite, check_nonnegative, check_positive, check_shape, is_tensor
+from .checks import check_finite, check_nonnegative, check_positive, check_shape
 from .io import default_mode, read_image, read_json, write_image, write_json
+from .normalization import Normalization
 from .optics import ThinLens
 
 log = logging.getLogger(__name__)
@@ -44,59 +44,6 @@ UNITS = {
     "lens": "mm",
     "focus": "m",
 }
-
-
-@dataclass(frozen=True)
-class Normalization:
-    """Exactly invertible map of linear HDR values [-offset, inf) onto the network's [-1, 1).
-
-    ``n = (x + o - s) / (x + o + s)``, i.e. ``n = tanh(ln((x + o) / s) / 2)``: a tanh of
-    log-exposure, so a network's final tanh works in log space. ``s - o`` maps to 0 and
-    highlights approach 1 without ever being clipped; the inverse is
-    ``x = s (1 + n) / (1 - n) - o``. The offset ``o`` keeps black off the saturated end of the
-    tanh: with the default ``o = s / 100``, ``n(0) = -0.980`` (``atanh = -2.3``), so light can
-    still be learned into black pixels (a CG background, say); it also admits slightly negative
-    values (sensor noise around a subtracted black level) down to ``-o``. In float32 the round
-    trip is exact to about 1e-6 relative for x up to 1e2 s and ~1e-3 at 1e4 s (the precision of
-    n near 1); use float64 where more is needed. The same map is applied to input and target, so
-    a pixel the lens leaves unchanged is the identity in either space.
-
-    Args:
-        scale: ``s`` in linear units, finite and > 0 (default 0.18, middle grey).
-        offset: ``o`` in linear units, finite and >= 0 (default ``scale / 100``).
-    """
-
-    scale: float = 0.18
-    offset: float | None = None
-
-    def __post_init__(self) -> None:
-        check_positive("normalization scale", self.scale)
-        if self.offset is None:
-            object.__setattr__(self, "offset", self.scale / 100.0)
-        check_nonnegative("normalization offset", self.offset)
-
-    def encode(self, x: Any) -> Any:
-        """Linear HDR (finite, >= -offset; array or tensor of any shape) -> [-1, 1)."""
-        check_at_least("linear colour", x, -self.offset)
-        shifted = x + self.offset
-        return (shifted - self.scale) / (shifted + self.scale)
-
-    def decode(self, n: Any) -> Any:
-        """[-1, 1) -> linear HDR; the exact inverse of :meth:`encode`."""
-        arr = n if (is_tensor(n) or isinstance(n, np.ndarray)) else np.asarray(n, dtype=np.float64)
-        bad = ~((arr >= -1.0) & (arr < 1.0))
-        if bool(bad.any()):
-            raise ValueError(f"normalised colour must be in [-1, 1), got values in [{float(arr.min())}, {float(arr.max())}]")
-        return self.scale * (1.0 + n) / (1.0 - n) - self.offset
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"kind": "mobius-log", "scale": self.scale, "offset": self.offset}
-
-    @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> "Normalization":
-        if d.get("kind") != "mobius-log":
-            raise ValueError(f"unknown normalisation {d.get('kind')!r}; expected 'mobius-log'")
-        return cls(scale=float(d["scale"]), offset=float(d["offset"]))
 
 
 def write_scene(

@@ -1,0 +1,226 @@
+"""Checkpoint -> ONNX with a parity check against PyTorch (the torch side of the export)."""
+
+from __future__ import annotations
+
+import copy
+import json
+import logging
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+import torch
+
+from .. import __version__
+from ..io import default_mode
+from ..model import NeuralBokeh
+from ..normalization import Normalization
+from ..training.checkpoint import load_model
+from .graph import build_graph
+from .lowrank import DEFAULT_KERNELS, cheaper_ranks, factorize, parse_kernels, reconstruct, relative_error
+
+log = logging.getLogger(__name__)
+
+METADATA_KEY = "neuralbokeh"
+METADATA_VERSION = 1
+# Max abs parity error (normalised units, outputs in (-1, 1)) above which the export fails.
+DEFAULT_TOLERANCE = {False: 1e-4, True: 2e-2}
+
+
+def calibration_inputs(height: int, width: int, count: int = 2, seed: int = 0) -> torch.Tensor:
+    """Natural-image-like normalised inputs ``(count, 4, H, W)`` for choosing kernel ranks.
+
+    Colour: 1/f noise (the power spectrum of natural images) as log-exposure over about
+    +-3 stops around middle grey with sparse highlights up to ~100x; CoC: a smooth random
+    field over [-1, 1] cut by a sharp vertical depth edge. Seeded and deterministic.
+    """
+    g = np.random.default_rng(seed)
+    fy, fx = np.fft.fftfreq(height)[:, None], np.fft.fftfreq(width)[None, :]
+    radius = np.sqrt(fy**2 + fx**2)
+    radius[0, 0] = 1.0
+
+    def field(shape: tuple[int, ...], power: float) -> np.ndarray:
+        spectrum = np.fft.fft2(g.standard_normal(shape)) / radius**power
+        f = np.fft.ifft2(spectrum).real
+        f -= f.mean(axis=(-2, -1), keepdims=True)
+        return f / (f.std(axis=(-2, -1), keepdims=True) + 1e-12)
+
+    log_exposure = field((count, 3, height, width), 1.0) + 0.5 * field((count, 1, height, width), 1.0)
+    linear = 0.18 * np.exp2(1.5 * log_exposure)
+    linear = np.where(g.uniform(size=(count, 1, height, width)) < 0.002, 100.0 * linear, linear)
+    coc = np.tanh(field((count, 1, height, width), 2.0))
+    coc[..., width // 2 :] = np.sign(coc[..., width // 2 :] + 1e-9) * (1.0 - 0.5 * np.abs(coc[..., width // 2 :]))
+    aif = Normalization().encode(linear)
+    return torch.from_numpy(np.concatenate([aif, coc], axis=1).astype(np.float32))
+
+
+def plan_factors(model: NeuralBokeh, kernels: str, calibration: torch.Tensor | None = None,
+                 ) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]], dict[str, Any]]:
+    """Separable factors per convolution under a ``--kernels`` spec, and a per-conv report.
+
+    ``auto:EPS`` measures, one convolution at a time, the RMS change of the model's output on
+    ``calibration`` (default :func:`calibration_inputs`) and keeps the smallest cheaper rank
+    within ``EPS / sqrt(#convs)`` (binary search over R; the error falls as R grows).
+    """
+    plan = parse_kernels(kernels)
+    convs = [(f"blocks.{n}.{part}", getattr(block, part).conv) for n, block in enumerate(model.blocks)
+             for part in ("conv_a", "conv_b")]
+    budget = plan.tolerance / max(len(convs), 1) ** 0.5
+    if plan.mode == "auto":
+        cfg = model.config
+        x = calibration if calibration is not None else calibration_inputs(cfg.image_height, cfg.image_width)
+        with torch.no_grad():
+            base = model(x)
+
+    def output_rms(conv: torch.nn.Conv2d, weight: np.ndarray, rank: int) -> float:
+        original = conv.weight.detach().clone()
+        with torch.no_grad():
+            conv.weight.copy_(torch.from_numpy(reconstruct(*factorize(weight, rank)))[:, None].to(original.dtype))
+            err = float((model(x) - base).pow(2).mean().sqrt())
+            conv.weight.copy_(original)
+        return err
+
+    factors, report = {}, {}
+    for key, conv in convs:
+        w = conv.weight.detach().double().numpy()[:, 0]  # (C, k, k)
+        k = w.shape[-1]
+        ranks = cheaper_ranks(k)
+        rank, err = 0, 0.0
+        if plan.mode == "lowrank" and plan.rank in ranks:
+            rank = plan.rank
+        elif plan.mode == "auto" and len(ranks):
+            lo, hi = 0, len(ranks)  # find the first rank within budget in ranks[lo:hi]
+            errors: dict[int, float] = {}
+            while lo < hi:
+                mid = (lo + hi) // 2
+                errors[ranks[mid]] = output_rms(conv, w, ranks[mid])
+                if errors[ranks[mid]] <= budget:
+                    hi = mid
+                else:
+                    lo = mid + 1
+            if lo < len(ranks):
+                rank, err = ranks[lo], errors[ranks[lo]]
+        if rank:
+            factors[key] = factorize(w, rank)
+        report[key] = {"k": int(k), "rank": rank, "max_rel_kernel_error": float(relative_error(w, rank).max()) if rank else 0.0,
+                       "output_rms_error": err}
+    return factors, report
+
+
+def lowrank_reference(model: NeuralBokeh, factors: dict[str, tuple[np.ndarray, np.ndarray]]) -> NeuralBokeh:
+    """A copy of ``model`` whose factorised kernels are replaced by what their factors represent:
+    the PyTorch function the ONNX graph must match."""
+    ref = copy.deepcopy(model).eval()
+    with torch.no_grad():
+        for key, (cols, rows) in factors.items():
+            n, part = key.split(".")[1:]
+            conv = getattr(ref.blocks[int(n)], part).conv
+            conv.weight.copy_(torch.from_numpy(reconstruct(cols, rows))[:, None].to(conv.weight.dtype))
+    return ref
+
+
+def probe_inputs(height: int, width: int, seed: int = 0) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Named ``(aif, coc)`` normalised input pairs for parity: random, and extremes (black,
+    1e4 highlights, CoC at +-max, a one-pixel depth edge)."""
+    g = np.random.default_rng(seed)
+    norm = Normalization()
+    rnd = (g.uniform(-0.99, 0.99, (2, 3, height, width)), g.uniform(-1, 1, (2, 1, height, width)))
+    lin = np.where(g.uniform(size=(1, 3, height, width)) < 0.5, 0.0, 1e4)
+    edge = np.ones((1, 1, height, width))
+    edge[..., : width // 2] = 0.0
+    cases = {"random": rnd,
+             "extreme_max_coc": (norm.encode(lin), np.where(g.uniform(size=(1, 1, height, width)) < 0.5, -1.0, 1.0)),
+             "extreme_depth_edge": (norm.encode(lin), edge)}
+    return {k: (a.astype(np.float32), c.astype(np.float32)) for k, (a, c) in cases.items()}
+
+
+def session(path_or_bytes: str | bytes, threads: int | None = None) -> ort.InferenceSession:
+    """A CPU onnxruntime session (``threads`` intra-op threads; None: onnxruntime's default)."""
+    so = ort.SessionOptions()
+    if threads:
+        so.intra_op_num_threads = threads
+        so.inter_op_num_threads = 1
+    return ort.InferenceSession(path_or_bytes, so, providers=["CPUExecutionProvider"])
+
+
+def export_checkpoint(
+    checkpoint: str | os.PathLike,
+    out: str | os.PathLike,
+    opset: int = 17,
+    fp16: bool = False,
+    kernels: str = DEFAULT_KERNELS,
+    tolerance: float | None = None,
+    threads: int | None = None,
+) -> dict[str, Any]:
+    """Export a checkpoint to ONNX, check it against PyTorch, then move it into place.
+
+    Args:
+        checkpoint: a ``train.py`` checkpoint.
+        out: the ``.onnx`` file to write (written to a temporary file and renamed after the
+            parity check passed; never half-written).
+        opset: ONNX opset, >= 17.
+        fp16: float16 trunk (see ``graph.py``).
+        kernels: ``direct``, ``lowrank:R`` or ``auto:EPS`` (see ``lowrank.py``).
+        tolerance: max abs parity error in normalised units (default 1e-4 fp32, 2e-2 fp16).
+        threads: onnxruntime threads for the parity run.
+
+    Returns:
+        A report: ``parity`` (max abs error per probe case, against the PyTorch function
+        of the exported kernels), ``approximation`` (max abs error of that function against
+        the trained model, per case: 0 for ``direct``), ``kernels`` (rank per convolution),
+        ``metadata`` and ``path``.
+
+    Raises:
+        ValueError: bad options, or a parity error above ``tolerance`` (nothing is written).
+    """
+    tolerance = DEFAULT_TOLERANCE[fp16] if tolerance is None else tolerance
+    model, ckpt = load_model(checkpoint)
+    cfg = model.config
+    factors, kernel_report = plan_factors(model, kernels)
+    weights = {k: v.detach().numpy() for k, v in model.state_dict().items()}
+    meta = {
+        "format": "neuralbokeh-onnx", "format_version": METADATA_VERSION, "package_version": __version__,
+        "model_config": cfg.to_dict(), "layout": list(cfg.layout), "num_tiles": cfg.num_tiles,
+        "blocks": cfg.blocks, "image_size": {"height": cfg.image_height, "width": cfg.image_width},
+        "lens": ckpt.get("lens"), "aperture": ckpt.get("aperture"), "normalization": ckpt["normalization"],
+        "coc_scale_px": float(ckpt["coc_scale_px"]), "max_coc_px": float(ckpt["max_coc_px"]),
+        "kernels": kernels, "kernel_ranks": {k: v["rank"] for k, v in kernel_report.items()},
+        "fp16": fp16, "opset": opset, "source_checkpoint": Path(checkpoint).name,
+        "trained_steps": ckpt.get("step"),
+    }
+    onnx_model = build_graph(weights, cfg.to_dict(), cfg.layout, factors, fp16, opset,
+                             {METADATA_KEY: json.dumps(meta, sort_keys=True)})
+    sess = session(onnx_model.SerializeToString(), threads)
+    reference = lowrank_reference(model, factors)
+    active = np.ones(cfg.num_tiles, dtype=bool)
+    parity, approx = {}, {}
+    with torch.no_grad():
+        for name, (aif, coc) in probe_inputs(cfg.image_height, cfg.image_width).items():
+            got = sess.run(["defocus"], {"aif": aif, "coc": coc, "tile_active": active})[0]
+            x = torch.from_numpy(np.concatenate([aif, coc], axis=1))
+            want = reference(x).numpy()
+            if not np.isfinite(got).all():
+                raise ValueError(f"ONNX output is not finite on the {name!r} probe")
+            parity[name] = float(np.abs(got - want).max())
+            approx[name] = float(np.abs(want - model(x).numpy()).max()) if factors else 0.0
+    worst = max(parity.values())
+    log.info("parity (max abs, normalised): %s; low-rank approximation: %s", parity, approx)
+    if worst > tolerance:
+        raise ValueError(f"ONNX and PyTorch differ by up to {worst:.3g} (> tolerance {tolerance:g}) per case {parity}; not written")
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent)
+    os.close(fd)
+    try:
+        onnx.save(onnx_model, tmp)
+        os.chmod(tmp, default_mode())
+        os.replace(tmp, out)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return {"path": str(out), "parity": parity, "tolerance": tolerance, "approximation": approx,
+            "kernels": kernel_report, "metadata": meta}

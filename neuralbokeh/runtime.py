@@ -1,0 +1,174 @@
+"""Run an exported lens model on CPU with onnxruntime: numpy in, numpy out, no torch.
+
+    from neuralbokeh.runtime import BokehModel
+    model = BokehModel("lens.onnx", threads=4)
+    out = model.render(aif, depth_m, focus_m=2.5)       # (H, W, 3) linear RGB
+    out = model.render_coc(aif, coc_px)                 # with a CoC map of your own
+
+Images are numpy ``(H, W, 3)`` or ``(B, H, W, 3)`` linear scene-referred RGB (the layout
+OpenImageIO reads), at the resolution the model was trained for. Depth is planar depth along
+the optical axis in metres ``(H, W)``, ``(H, W, 1)`` or batched; ``+inf`` is allowed. The lens,
+normalisation and CoC range come from the model file's metadata.
+
+Leaving out what a scene does not need: a tile whose |CoC| stays below ``in_focus_px``
+(default 0.5 px) over its whole window (the tile and its overlap: tiles are evaluated
+independently, so the window is the tile's entire receptive field) returns its input
+without running the network. Tiles that do run give exactly what the full evaluation gives.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import warnings
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import onnxruntime as ort
+
+from .checks import check_at_least, check_finite, format_location
+from .normalization import Normalization
+from .optics import ThinLens
+
+log = logging.getLogger(__name__)
+
+METADATA_KEY = "neuralbokeh"
+
+
+class BokehModel:
+    """A lens model exported by ``export.py``.
+
+    Args:
+        path: the ``.onnx`` file.
+        threads: onnxruntime intra-op threads (None: onnxruntime's default, all cores).
+        skip_in_focus: return in-focus tiles unchanged without running the network.
+        in_focus_px: |CoC| in px below which a tile window counts as in focus, >= 0.
+
+    Raises:
+        FileNotFoundError: no such file.
+        ValueError: the file is not a neuralbokeh model (no or unknown metadata).
+    """
+
+    def __init__(self, path: str | Path, threads: int | None = None, skip_in_focus: bool = True,
+                 in_focus_px: float = 0.5) -> None:
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"no such model file: {path}")
+        check_at_least("in_focus_px", in_focus_px, 0.0, " px")
+        so = ort.SessionOptions()
+        if threads:
+            so.intra_op_num_threads = int(threads)
+            so.inter_op_num_threads = 1
+        so.log_severity_level = 3
+        self.session = ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
+        props = self.session.get_modelmeta().custom_metadata_map
+        if METADATA_KEY not in props:
+            raise ValueError(f"{path} has no {METADATA_KEY!r} metadata: not exported by neuralbokeh's export.py")
+        self.meta: dict[str, Any] = json.loads(props[METADATA_KEY])
+        if self.meta.get("format") != "neuralbokeh-onnx" or self.meta.get("format_version") != 1:
+            raise ValueError(f"{path}: unsupported model format {self.meta.get('format')!r} v{self.meta.get('format_version')}")
+        self.height = int(self.meta["image_size"]["height"])
+        self.width = int(self.meta["image_size"]["width"])
+        self.lens = ThinLens.from_dict(self.meta["lens"]) if self.meta.get("lens") else None
+        self.normalization = Normalization.from_dict(self.meta["normalization"])
+        self.max_coc_px = float(self.meta["max_coc_px"])
+        self.coc_scale_px = float(self.meta["coc_scale_px"])
+        self.layout = tuple(int(v) for v in self.meta["layout"])
+        self.skip_in_focus, self.in_focus_px = skip_in_focus, float(in_focus_px)
+        self.last_tiles_run = 0
+
+    @property
+    def num_tiles(self) -> int:
+        return self.layout[0] * self.layout[1]
+
+    def coc_px(self, depth_m: np.ndarray, focus_m: float) -> np.ndarray:
+        """Signed CoC diameter in px (negative in front of the focus plane) from planar depth in m
+        (> 0, inf allowed) with the model's lens, at the model's image width."""
+        if self.lens is None:
+            raise ValueError("this model carries no lens metadata; use render_coc with a CoC map")
+        return np.asarray(self.lens.coc_px(np.asarray(depth_m, dtype=np.float64), float(focus_m), self.width, signed=True))
+
+    def render(self, aif: np.ndarray, depth_m: np.ndarray, focus_m: float, clamp_coc: bool = False) -> np.ndarray:
+        """Defocus ``aif`` as the lens focused at ``focus_m`` (m) would.
+
+        Args:
+            aif: linear RGB, ``(H, W, 3)`` or ``(B, H, W, 3)``, finite, >= -normalisation offset.
+            depth_m: planar depth in m, ``(H, W)``, ``(H, W, 1)`` or with a leading batch; > 0, inf allowed.
+            focus_m: focus distance in m (greater than the focal length).
+            clamp_coc: clamp CoCs beyond the trained maximum (with a warning) instead of failing.
+
+        Returns:
+            float32 linear RGB in the layout of ``aif``.
+        """
+        aif4, batched = self._images(aif)
+        depth = self._per_pixel("depth_m", depth_m, aif4, batched)
+        return self._run(aif4, self.coc_px(depth, focus_m), clamp_coc, batched)
+
+    def render_coc(self, aif: np.ndarray, coc_px: np.ndarray, clamp_coc: bool = False) -> np.ndarray:
+        """Like :meth:`render` with a signed CoC map in px (``(H, W)``, ``(H, W, 1)`` or batched)."""
+        aif4, batched = self._images(aif)
+        return self._run(aif4, self._per_pixel("coc_px", coc_px, aif4, batched), clamp_coc, batched)
+
+    def active_tiles(self, coc_px: np.ndarray) -> np.ndarray:
+        """``(tiles,)`` bool: tiles whose window holds a |CoC| >= ``in_focus_px`` in any image of
+        the batch ``(B, H, W)`` (all true when skipping is off)."""
+        rows, cols, t, t_o = self.layout
+        if not self.skip_in_focus:
+            return np.ones(rows * cols, dtype=bool)
+        peak = np.abs(coc_px).max(axis=0)
+        padded = np.pad(peak, ((t_o, t_o + rows * t - self.height), (t_o, t_o + cols * t - self.width)), mode="edge")
+        win = t + 2 * t_o
+        return np.array([padded[i * t : i * t + win, j * t : j * t + win].max() >= self.in_focus_px
+                         for i in range(rows) for j in range(cols)], dtype=bool)
+
+    def _images(self, aif: np.ndarray) -> tuple[np.ndarray, bool]:
+        a = np.asarray(aif)
+        batched = a.ndim == 4
+        a4 = a if batched else a[None]
+        if a4.ndim != 4 or a4.shape[1:] != (self.height, self.width, 3):
+            raise ValueError(f"aif must have shape ({self.height}, {self.width}, 3) or (B, {self.height}, {self.width}, 3) "
+                             f"for this model, got {a.shape}")
+        chw = a4.transpose(0, 3, 1, 2)  # so that errors name the pixel as (row, col)
+        check_finite("aif colour", chw)
+        check_at_least("aif colour", chw, -self.normalization.offset)
+        return a4, batched
+
+    @staticmethod
+    def _per_pixel(name: str, values: np.ndarray, aif4: np.ndarray, batched: bool) -> np.ndarray:
+        """A one-channel map ``(H, W)``, ``(H, W, 1)`` (or with the batch axis) -> ``(B, H, W)`` float64."""
+        a = np.asarray(values, dtype=np.float64)
+        if a.ndim == 3 + batched and a.shape[-1] == 1:
+            a = a[..., 0]
+        if a.ndim == 2:
+            a = np.broadcast_to(a, aif4.shape[:1] + a.shape)
+        if a.shape != aif4.shape[:3]:
+            want = f"{aif4.shape[:3]} or {aif4.shape[:3] + (1,)}" if batched else f"{aif4.shape[1:3]} or {aif4.shape[1:3] + (1,)}"
+            raise ValueError(f"{name} must have shape {want}, got {np.shape(values)}")
+        return a
+
+    def _run(self, aif: np.ndarray, coc_px: np.ndarray, clamp_coc: bool, batched: bool) -> np.ndarray:
+        check_finite("CoC", coc_px, " px")
+        over = np.abs(coc_px) > self.max_coc_px
+        if over.any():
+            where = format_location(np.unravel_index(int(np.argmax(np.abs(coc_px))), coc_px.shape)[1:])
+            msg = (f"|CoC| up to {np.abs(coc_px).max():.3f} px at {where} ({int(over.sum())} pixels) exceeds the "
+                   f"model's trained maximum of {self.max_coc_px:.3f} px")
+            if not clamp_coc:
+                raise ValueError(msg + "; pass clamp_coc=True to clamp it")
+            warnings.warn(msg + "; clamped", stacklevel=3)
+            log.warning("%s; clamped", msg)
+            coc_px = np.clip(coc_px, -self.max_coc_px, self.max_coc_px)
+        active = self.active_tiles(coc_px)
+        self.last_tiles_run = int(active.sum())
+        feeds = {
+            "aif": np.ascontiguousarray(self.normalization.encode(aif.astype(np.float64)).transpose(0, 3, 1, 2), dtype=np.float32),
+            "coc": np.ascontiguousarray((coc_px / self.coc_scale_px)[:, None], dtype=np.float32),
+            "tile_active": active,
+        }
+        out = self.session.run(["defocus"], feeds)[0].astype(np.float64)
+        if not (out < 1.0).all():
+            where = format_location(np.unravel_index(int(np.argmax(out)), out.shape)[2:])
+            raise ValueError(f"the model's output saturated (normalised value {out.max()} >= 1) at {where}")
+        linear = self.normalization.decode(out).transpose(0, 2, 3, 1).astype(np.float32)
+        return linear if batched else linear[0]
