@@ -44,6 +44,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from .checks import check_finite
 from .render.fftconv import fft_convolve2d
 
 KERNELS = ("growing", "fixed3")
@@ -234,6 +235,7 @@ class NeuralBokeh(nn.Module):
             raise ValueError(
                 f"input must have shape (B, 4, {cfg.image_height}, {cfg.image_width}) for this model, got {tuple(x.shape)}"
             )
+        check_finite("model input", x)
         n, f = cfg.num_tiles, cfg.features
         xt = tile(x, cfg.layout)  # (B, n*4, win, win)
         b, _, win, _ = xt.shape

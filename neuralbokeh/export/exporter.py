@@ -124,17 +124,26 @@ def lowrank_reference(model: NeuralBokeh, factors: dict[str, tuple[np.ndarray, n
 
 
 def probe_inputs(height: int, width: int, seed: int = 0) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """Named ``(aif, coc)`` normalised input pairs for parity: random, and extremes (black,
-    1e4 highlights, CoC at +-max, a one-pixel depth edge)."""
+    """Named normalised ``(aif (B, 3, H, W), coc (B, 1, H, W))`` float32 inputs for the parity
+    check and the stability suite: random values, everything in focus, everything at the
+    maximum CoC (both signs), a depth edge from in focus to the maximum CoC within one pixel,
+    and 1e4 highlights on black."""
     g = np.random.default_rng(seed)
     norm = Normalization()
-    rnd = (g.uniform(-0.99, 0.99, (2, 3, height, width)), g.uniform(-1, 1, (2, 1, height, width)))
-    lin = np.where(g.uniform(size=(1, 3, height, width)) < 0.5, 0.0, 1e4)
-    edge = np.ones((1, 1, height, width))
-    edge[..., : width // 2] = 0.0
-    cases = {"random": rnd,
-             "extreme_max_coc": (norm.encode(lin), np.where(g.uniform(size=(1, 1, height, width)) < 0.5, -1.0, 1.0)),
-             "extreme_depth_edge": (norm.encode(lin), edge)}
+    shape1, shape3 = (1, 1, height, width), (1, 3, height, width)
+    scene = norm.encode(0.18 * np.exp2(g.uniform(-4, 4, shape3)))
+    highlights = norm.encode(np.where(g.uniform(size=shape3) < 0.3, 1e4, 0.0))
+    edge = np.zeros(shape1)
+    edge[..., width // 2 :] = 1.0
+    cases = {
+        "random": (g.uniform(-0.99, 0.99, (2, 3, height, width)), g.uniform(-1, 1, (2, 1, height, width))),
+        "all_in_focus": (scene, np.zeros(shape1)),
+        "all_max_coc_behind": (scene, np.ones(shape1)),
+        "all_max_coc_in_front": (scene, -np.ones(shape1)),
+        "depth_edge_one_pixel": (scene, edge),
+        "highlights_1e4": (highlights, np.where(g.uniform(size=shape1) < 0.5, -1.0, 1.0)),
+        "highlights_1e4_edge": (highlights, edge),
+    }
     return {k: (a.astype(np.float32), c.astype(np.float32)) for k, (a, c) in cases.items()}
 
 

@@ -1,0 +1,140 @@
+"""The torch-free runtime: agreement with PyTorch, its errors, and in-focus tile skipping."""
+
+import subprocess
+import sys
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from neuralbokeh.export.exporter import export_checkpoint
+from neuralbokeh.normalization import Normalization
+from neuralbokeh.runtime import BokehModel
+from neuralbokeh.training import load_model
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def exported(busy_checkpoint, tmp_path_factory):
+    path = tmp_path_factory.mktemp("onnx") / "busy.onnx"
+    export_checkpoint(busy_checkpoint, path, kernels="direct", threads=1)
+    return path
+
+
+def _scene(model: BokehModel, seed=0):
+    g = np.random.default_rng(seed)
+    aif = (0.18 * np.exp2(g.uniform(-3, 3, (model.height, model.width, 3)))).astype(np.float32)
+    return aif
+
+
+def _torch_render(checkpoint, aif, coc_px):
+    model, ckpt = load_model(checkpoint)
+    norm = Normalization.from_dict(ckpt["normalization"])
+    x = np.concatenate([norm.encode(aif.astype(np.float64)).transpose(2, 0, 1), coc_px[None] / ckpt["coc_scale_px"]])
+    with torch.no_grad():
+        return model(torch.from_numpy(x[None]).float())[0].numpy()
+
+
+def test_render_matches_pytorch_through_lens_and_normalisation(exported, busy_checkpoint):
+    m = BokehModel(exported, threads=1, skip_in_focus=False)
+    aif = _scene(m)
+    depth = np.linspace(1.7, 2.5, m.height * m.width).reshape(m.height, m.width)
+    focus = 2.0
+    coc = m.coc_px(depth, focus)
+    assert np.abs(coc).max() <= m.max_coc_px
+    out = m.render(aif, depth[..., None], focus)
+    assert out.shape == aif.shape and out.dtype == np.float32
+    want = _torch_render(busy_checkpoint, aif, coc)
+    got = m.normalization.encode(out.astype(np.float64)).transpose(2, 0, 1)
+    assert np.abs(got - want).max() < 1e-4
+    np.testing.assert_array_equal(out, m.render_coc(aif, coc))
+    batch = m.render(np.stack([aif, aif[::-1].copy()]), np.stack([depth, depth]), focus)
+    np.testing.assert_allclose(batch[0], out, rtol=1e-6, atol=1e-6)
+    assert m.lens.to_dict() == load_model(busy_checkpoint)[1]["lens"]
+
+
+def test_runtime_errors_name_the_value(exported):
+    m = BokehModel(exported, threads=1)
+    aif = _scene(m)
+    depth = np.full((m.height, m.width), 3.0)
+    with pytest.raises(ValueError, match=rf"aif must have shape \({m.height}, {m.width}, 3\)"):
+        m.render(aif[:-1], depth[:-1], 2.0)
+    bad = aif.copy()
+    bad[5, 7, 1] = np.nan
+    with pytest.raises(ValueError, match=r"aif colour must be finite, got nan at pixel \(5, 7\)"):
+        m.render(bad, depth, 2.0)
+    bad[5, 7, 1] = np.inf
+    with pytest.raises(ValueError, match="must be finite, got inf"):
+        m.render(bad, depth, 2.0)
+    d = depth.copy()
+    d[12, 4] = -1.0
+    with pytest.raises(ValueError, match=r"got -1.0 at pixel \(12, 4\)"):
+        m.render(aif, d, 2.0)
+    with pytest.raises(ValueError, match="depth_m must have shape"):
+        m.render(aif, depth[:, :5], 2.0)
+    with pytest.raises(ValueError, match="exceeds the model's trained maximum"):
+        m.render_coc(aif, np.full(depth.shape, m.max_coc_px * 1.5))
+    with pytest.raises(FileNotFoundError):
+        BokehModel(exported.parent / "missing.onnx")
+
+
+def test_clamping_the_coc_is_explicit_and_warns(exported):
+    m = BokehModel(exported, threads=1)
+    aif = _scene(m)
+    coc = np.full((m.height, m.width), m.max_coc_px * 2.0)
+    with pytest.warns(UserWarning, match="clamped"):
+        out = m.render_coc(aif, coc, clamp_coc=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        np.testing.assert_array_equal(out, m.render_coc(aif, np.full_like(coc, m.max_coc_px)))
+
+
+def test_depth_at_infinity_renders_finite(exported):
+    m = BokehModel(exported, threads=1)
+    focus = next(f for f in np.geomspace(0.2, 1e3, 200) if abs(m.coc_px(np.inf, f)) <= m.max_coc_px)
+    out = m.render(_scene(m), np.full((m.height, m.width), np.inf), focus)
+    assert np.isfinite(out).all()
+
+
+def test_in_focus_tiles_are_skipped_and_defocused_ones_unchanged(exported):
+    m_full = BokehModel(exported, threads=1, skip_in_focus=False)
+    m_skip = BokehModel(exported, threads=1)
+    rows, cols, t, t_o = m_skip.layout
+    assert (rows, cols) == (2, 3) and m_skip.width == 40
+    aif = _scene(m_skip, seed=3)
+    coc = np.zeros((m_skip.height, m_skip.width))
+    coc[:, 24:] = 0.8 * m_skip.max_coc_px  # tile column 0's window (x < 20) is all in focus
+    coc[:, 10:24] = 0.3  # below the 0.5 px threshold
+    full, skip = m_full.render_coc(aif, coc), m_skip.render_coc(aif, coc)
+    assert m_full.last_tiles_run == 6 and m_skip.last_tiles_run == 4
+    np.testing.assert_array_equal(skip[:, t + t_o :], full[:, t + t_o :])  # covered only by tiles that ran
+    np.testing.assert_allclose(skip[:, : t - t_o], aif[:, : t - t_o], rtol=2e-6)  # skipped: the input
+    assert np.abs(full[:, : t - t_o] - aif[:, : t - t_o]).max() > 1e-3  # the busy network would have changed it
+    everything_sharp = m_skip.render_coc(aif, np.zeros_like(coc))
+    assert m_skip.last_tiles_run == 0
+    np.testing.assert_allclose(everything_sharp, aif, rtol=2e-6)
+
+
+def test_runtime_imports_no_torch(exported):
+    code = ("import sys, numpy as np; from neuralbokeh.runtime import BokehModel; "
+            f"m = BokehModel(r'{exported}', threads=1); "
+            "m.render_coc(np.full((m.height, m.width, 3), 0.2, np.float32), np.zeros((m.height, m.width))); "
+            "assert 'torch' not in sys.modules, 'torch was imported'")
+    subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)
+
+
+def test_a_foreign_onnx_file_is_refused(tmp_path):
+    import onnx
+    from onnx import TensorProto, helper
+
+    g = helper.make_graph([helper.make_node("Identity", ["x"], ["y"])], "g",
+                          [helper.make_tensor_value_info("x", TensorProto.FLOAT, [1])],
+                          [helper.make_tensor_value_info("y", TensorProto.FLOAT, [1])])
+    m = helper.make_model(g, opset_imports=[helper.make_opsetid("", 17)])
+    m.ir_version = 9
+    onnx.save(m, tmp_path / "x.onnx")
+    with pytest.raises(ValueError, match="not exported by neuralbokeh"):
+        BokehModel(tmp_path / "x.onnx")

@@ -1,0 +1,72 @@
+"""Numerical stability through PyTorch and ONNX (fp32 and fp16) on stiff and extreme inputs.
+
+Cases (``probe_inputs``): random, everything in focus, everything at the maximum CoC (both
+signs), a one-pixel depth edge from in focus to the maximum CoC, 1e4 highlights; models:
+a busy 40x32 network (6 tiles), one smaller than one tile and one of odd size. Depth = inf and
+NaN/inf inputs are covered through the runtime in ``test_runtime.py`` and below.
+"""
+
+import numpy as np
+import pytest
+import torch
+
+from neuralbokeh.export.exporter import export_checkpoint, probe_inputs, session
+from neuralbokeh.model import ModelConfig, NeuralBokeh
+from neuralbokeh.normalization import Normalization
+from neuralbokeh.training import load_model
+from neuralbokeh.training.checkpoint import save_checkpoint
+
+TOLERANCE = {False: 1e-4, True: 2e-2}
+
+
+def _random_checkpoint(path, height, width, blocks=3):
+    torch.manual_seed(height * 1000 + width)
+    cfg = ModelConfig(image_height=height, image_width=width, blocks=blocks, features=4, tile=16, overlap=4)
+    model = NeuralBokeh(cfg)
+    with torch.no_grad():
+        for name, p in model.named_parameters():
+            if name.startswith("c2.") or ".conv_b." in name:
+                p.copy_(0.3 * torch.randn_like(p) / max(1, p[0].numel()) ** 0.5)
+    save_checkpoint(path, {"model_config": cfg.to_dict(), "model_state": model.state_dict(),
+                           "lens": {"focal_length_mm": 50.0, "f_number": 2.0, "sensor_width_mm": 36.0},
+                           "aperture": None, "normalization": Normalization().to_dict(),
+                           "coc_scale_px": 7.0, "max_coc_px": 7.0, "step": 0})
+    return path
+
+
+@pytest.fixture(scope="module", params=["busy_40x32", "smaller_than_a_tile_13x11", "odd_37x23"])
+def checkpoint(request, busy_checkpoint, tmp_path_factory):
+    if request.param == "busy_40x32":
+        return busy_checkpoint
+    h, w = (11, 13) if request.param.startswith("smaller") else (23, 37)
+    return _random_checkpoint(tmp_path_factory.mktemp("stab") / f"{request.param}.pt", h, w)
+
+
+@pytest.mark.parametrize("fp16", [False, True], ids=["fp32", "fp16"])
+def test_extreme_cases_are_finite_bounded_and_within_parity(checkpoint, fp16, tmp_path):
+    report = export_checkpoint(checkpoint, tmp_path / "m.onnx", fp16=fp16, kernels="direct", threads=1)
+    model, _ = load_model(checkpoint)
+    cfg = model.config
+    sess = session(str(tmp_path / "m.onnx"), threads=1)
+    norm = Normalization()
+    for name, (aif, coc) in probe_inputs(cfg.image_height, cfg.image_width).items():
+        assert report["parity"][name] <= TOLERANCE[fp16], name
+        with torch.no_grad():
+            ref = model(torch.from_numpy(np.concatenate([aif, coc], axis=1))).numpy()
+        got = sess.run(["defocus"], {"aif": aif, "coc": coc, "tile_active": np.ones(cfg.num_tiles, bool)})[0]
+        for out in (ref, got):
+            assert np.isfinite(out).all() and np.abs(out).max() < 1.0, name
+            assert np.isfinite(norm.decode(out.astype(np.float64))).all(), name
+        assert np.abs(got - ref).max() <= TOLERANCE[fp16], name
+    if not fp16:  # in-focus 1e4 highlights pass through the fp32 identity head unharmed in the skip
+        assert report["parity"]["highlights_1e4"] <= 1e-4
+
+
+def test_pytorch_model_refuses_nan_and_inf_inputs(busy_checkpoint):
+    model, _ = load_model(busy_checkpoint)
+    cfg = model.config
+    x = torch.zeros(1, 4, cfg.image_height, cfg.image_width)
+    for bad in (float("nan"), float("inf")):
+        x[0, 1, 3, 5] = bad
+        with pytest.raises(ValueError, match=r"model input must be finite, got (nan|inf) at pixel \(3, 5\)"):
+            model(x)
