@@ -1,0 +1,205 @@
+"""Composite a rendered CG layer over a photograph with the learned lens blur (paper section 3.4).
+
+    python -m neuralbokeh.composite --model lens.onnx --plate photo.exr --render cg.exr \\
+        --depth cg_depth.exr --alpha cg_alpha.exr --focus 2.5 --out comp.exr
+
+The all-in-focus render (pinhole camera with the real camera's intrinsics) is defocused by the
+model with the CoC from its depth (planar, metres) and the focus distance; the object mask is
+eroded (``--erode`` px) and Gaussian-smoothed (``--feather`` px) and the blurred render is put
+over the plate with it, in linear light: ``out = a * model(render) + (1 - a) * plate``.
+
+Files: EXR and float TIFF are taken as linear. 8/16-bit PNG/TIFF inputs tagged sRGB are
+linearised (OpenImageIO's colour conversion) and a PNG output is sRGB-encoded; values above 1
+cannot go into a PNG and are an error unless ``--clip-ldr`` says to clip them. Depth and alpha use
+their first channel (alpha: the A channel of an RGBA file).
+
+Sequences: put ``%04d`` (any printf integer pattern) in any path and give ``--frames 1-48``;
+paths without a pattern are used for every frame (a static plate, say). A focus pull is a CSV
+``--focus-curve`` of ``frame,focus_m`` rows, interpolated linearly between keys.
+Every output file is written atomically; a progress bar runs over the frames.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import logging
+import re
+import sys
+from pathlib import Path
+
+import numpy as np
+import OpenImageIO as oiio
+from tqdm import tqdm
+
+from .io import read_image, write_image
+from .masks import erode, gaussian_blur
+from .runtime import BokehModel
+
+log = logging.getLogger(__name__)
+_PATTERN = re.compile(r"%0?\d*d")
+_LINEAR_FORMATS = (".exr", ".hdr")
+
+
+def _frame_path(path: str, frame: int | None) -> Path:
+    if _PATTERN.search(path):
+        if frame is None:
+            raise ValueError(f"{path} is a sequence pattern: give --frames")
+        return Path(path % frame)
+    return Path(path)
+
+
+def _is_ldr_srgb(path: Path) -> bool:
+    if path.suffix.lower() in _LINEAR_FORMATS:
+        return False
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        return False
+    try:
+        spec = inp.spec()
+        integer = spec.format.basetype in (oiio.UINT8, oiio.UINT16)
+        return integer and "srgb" in str(spec.get_string_attribute("oiio:ColorSpace")).lower()
+    finally:
+        inp.close()
+
+
+def _convert(arr: np.ndarray, src: str, dst: str) -> np.ndarray:
+    out = oiio.ImageBufAlgo.colorconvert(oiio.ImageBuf(np.ascontiguousarray(arr, dtype=np.float32)), src, dst)
+    if out.has_error:
+        raise OSError(f"colour conversion {src} -> {dst} failed: {out.geterror()}")
+    return out.get_pixels(oiio.FLOAT).reshape(arr.shape)
+
+
+def read_linear(path: Path, channels: str) -> np.ndarray:
+    """``channels`` ``"rgb"`` -> ``(H, W, 3)`` linear; ``"one"`` -> ``(H, W)`` (alpha: the A channel)."""
+    img = read_image(path)
+    if channels == "rgb":
+        if img.shape[2] < 3:
+            raise ValueError(f"{path}: expected an RGB(A) image, got {img.shape[2]} channel(s)")
+        rgb = img[:, :, :3]
+        return _convert(rgb, "sRGB", "linear") if _is_ldr_srgb(path) else rgb
+    return img[:, :, 3] if img.shape[2] == 4 else img[:, :, 0]
+
+
+def write_output(path: Path, rgb: np.ndarray, clip_ldr: bool) -> None:
+    """EXR/TIFF: linear float32 RGB. PNG: sRGB-encoded 16-bit (values outside [0, 1] need ``clip_ldr``)."""
+    if path.suffix.lower() == ".png":
+        over = int((rgb > 1.0).sum() + (rgb < 0.0).sum())
+        if over and not clip_ldr:
+            raise ValueError(f"{path}: {over} values outside [0, 1] (max {rgb.max():.3g}) cannot be stored in a PNG; "
+                             "write .exr/.tif or pass --clip-ldr")
+        encoded = _convert(np.clip(rgb, 0.0, 1.0), "linear", "sRGB")
+        write_image(path, np.round(np.clip(encoded, 0.0, 1.0) * 65535).astype(np.uint16), pixel_type="uint16",
+                    channel_names=["R", "G", "B"])
+    else:
+        write_image(path, rgb, channel_names=["R", "G", "B"])
+
+
+def read_focus_curve(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """CSV ``frame,focus_m`` (header optional) -> sorted ``(frames, focus_m)``."""
+    frames, focus = [], []
+    with open(path, newline="") as f:
+        for n, row in enumerate(csv.reader(f), 1):
+            if not row or row[0].strip().startswith("#"):
+                continue
+            try:
+                frames.append(float(row[0]))
+                focus.append(float(row[1]))
+            except (ValueError, IndexError):
+                if n == 1:
+                    continue  # a header
+                raise ValueError(f"{path}:{n}: expected 'frame,focus_m', got {row!r}") from None
+    if not frames:
+        raise ValueError(f"{path}: no 'frame,focus_m' rows")
+    order = np.argsort(frames)
+    fr, fo = np.asarray(frames)[order], np.asarray(focus)[order]
+    if (fo <= 0).any() or not np.isfinite(fo).all():
+        raise ValueError(f"{path}: focus distances must be finite and > 0 m, got {fo.tolist()}")
+    return fr, fo
+
+
+def focus_at(curve: tuple[np.ndarray, np.ndarray], frame: int) -> float:
+    frames, focus = curve
+    if not frames[0] <= frame <= frames[-1]:
+        raise ValueError(f"frame {frame} is outside the focus curve's frames [{frames[0]:g}, {frames[-1]:g}]")
+    return float(np.interp(frame, frames, focus))
+
+
+def composite_frame(model: BokehModel, plate: np.ndarray, render: np.ndarray, depth: np.ndarray, alpha: np.ndarray,
+                    focus_m: float, erode_px: int = 1, feather_px: float = 1.0, clamp_coc: bool = False) -> np.ndarray:
+    """One frame: ``a * model(render) + (1 - a) * plate`` in linear light with ``a`` the eroded,
+    smoothed mask. Shapes: plate/render ``(H, W, 3)``, depth/alpha ``(H, W)``; alpha in [0, 1]."""
+    for name, img in (("plate", plate), ("render", render)):
+        if img.shape != (model.height, model.width, 3):
+            raise ValueError(f"{name} must be {model.width}x{model.height} RGB (the model's size), got {img.shape}")
+    if alpha.shape != (model.height, model.width):
+        raise ValueError(f"alpha must be {model.width}x{model.height}, got {alpha.shape}")
+    if not ((alpha >= 0) & (alpha <= 1)).all():
+        raise ValueError(f"alpha must be in [0, 1], got values in [{alpha.min()}, {alpha.max()}]")
+    blurred = model.render(render, depth, focus_m, clamp_coc=clamp_coc)
+    a = gaussian_blur(erode(alpha.astype(np.float32), erode_px), feather_px)[:, :, None]
+    return (a * blurred + (1.0 - a) * plate).astype(np.float32)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m neuralbokeh.composite", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--model", required=True, help="ONNX model written by export.py")
+    p.add_argument("--plate", required=True, help="the photograph (background), linear RGB")
+    p.add_argument("--render", required=True, help="all-in-focus CG render, linear RGB")
+    p.add_argument("--depth", required=True, help="the render's planar depth in metres (inf allowed)")
+    p.add_argument("--alpha", required=True, help="the render's object mask in [0, 1]")
+    focus = p.add_mutually_exclusive_group(required=True)
+    focus.add_argument("--focus", type=float, help="focus distance in metres")
+    focus.add_argument("--focus-curve", type=Path, help="CSV of frame,focus_m (a focus pull)")
+    p.add_argument("--out", required=True, help="output file (.exr/.tif linear, .png sRGB)")
+    p.add_argument("--frames", help="first-last frame numbers for %%04d patterns, e.g. 1-48")
+    p.add_argument("--erode", type=int, default=1, help="mask erosion radius in px (default 1)")
+    p.add_argument("--feather", type=float, default=1.0, help="mask Gaussian sigma in px (default 1.0)")
+    p.add_argument("--threads", type=int, default=None, help="onnxruntime threads (default: all cores)")
+    p.add_argument("--clamp-coc", action="store_true", help="clamp CoCs beyond the model's range (warns) instead of failing")
+    p.add_argument("--clip-ldr", action="store_true", help="clip values outside [0, 1] when writing PNG")
+    p.add_argument("--no-skip", action="store_true", help="run the network on in-focus tiles too")
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stdout)
+    try:
+        if args.frames:
+            m = re.fullmatch(r"(-?\d+)-(-?\d+)", args.frames)
+            if not m or int(m.group(1)) > int(m.group(2)):
+                raise ValueError(f"--frames must be FIRST-LAST with FIRST <= LAST, got {args.frames!r}")
+            frames: list[int | None] = list(range(int(m.group(1)), int(m.group(2)) + 1))
+            if not _PATTERN.search(args.out):
+                raise ValueError(f"--out {args.out} needs a frame pattern such as %04d when --frames is given")
+        else:
+            frames = [None]
+        curve = read_focus_curve(args.focus_curve) if args.focus_curve else None
+        if curve is not None and frames == [None]:
+            raise ValueError("--focus-curve needs --frames")
+        model = BokehModel(args.model, threads=args.threads, skip_in_focus=not args.no_skip)
+        static: dict[str, np.ndarray] = {}
+
+        def load(arg: str, frame: int | None, channels: str) -> np.ndarray:
+            if not _PATTERN.search(arg) and arg in static:
+                return static[arg]
+            img = read_linear(_frame_path(arg, frame), channels)
+            if not _PATTERN.search(arg):
+                static[arg] = img
+            return img
+
+        for frame in tqdm(frames, desc="composite", unit="frame", disable=len(frames) < 2):
+            focus_m = args.focus if curve is None else focus_at(curve, frame)
+            comp = composite_frame(model, load(args.plate, frame, "rgb"), load(args.render, frame, "rgb"),
+                                   load(args.depth, frame, "one"), load(args.alpha, frame, "one"), focus_m,
+                                   args.erode, args.feather, args.clamp_coc)
+            out = _frame_path(args.out, frame)
+            out.parent.mkdir(parents=True, exist_ok=True)
+            write_output(out, comp, args.clip_ldr)
+            log.info("wrote %s (focus %.3f m, %d of %d tiles through the network)", out, focus_m,
+                     model.last_tiles_run, model.num_tiles)
+    except (FileNotFoundError, ValueError, OSError) as e:
+        raise SystemExit(f"error: {e}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

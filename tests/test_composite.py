@@ -1,0 +1,101 @@
+"""Compositing: mask operations against kornia, and the CLI end to end on files."""
+
+import numpy as np
+import pytest
+import torch
+from kornia.filters import gaussian_blur2d
+from kornia.morphology import erosion
+
+from neuralbokeh.composite import composite_frame, main
+from neuralbokeh.export.exporter import export_checkpoint
+from neuralbokeh.io import read_image, write_image
+from neuralbokeh.masks import erode, gaussian_blur
+from neuralbokeh.runtime import BokehModel
+
+
+@pytest.mark.parametrize("radius", [1, 2])
+def test_erode_matches_kornia(radius):
+    m = np.random.default_rng(radius).uniform(size=(17, 23)).astype(np.float32)
+    want = erosion(torch.from_numpy(m)[None, None], torch.ones(2 * radius + 1, 2 * radius + 1))[0, 0].numpy()
+    np.testing.assert_allclose(erode(m, radius), want, atol=1e-7)
+    with pytest.raises(ValueError, match="integer >= 0"):
+        erode(m, -1)
+
+
+@pytest.mark.parametrize("sigma", [0.8, 2.0])
+def test_gaussian_blur_matches_kornia(sigma):
+    m = np.random.default_rng(3).uniform(size=(19, 21)).astype(np.float32)
+    k = 2 * int(np.ceil(3 * sigma)) + 1
+    want = gaussian_blur2d(torch.from_numpy(m)[None, None].double(), (k, k), (sigma, sigma), border_type="reflect")[0, 0]
+    np.testing.assert_allclose(gaussian_blur(m, sigma), want.numpy(), atol=1e-6)
+
+
+@pytest.fixture(scope="module")
+def model_path(busy_checkpoint, tmp_path_factory):
+    path = tmp_path_factory.mktemp("comp") / "lens.onnx"
+    export_checkpoint(busy_checkpoint, path, kernels="direct", threads=1)
+    return path
+
+
+def _inputs(m: BokehModel, seed=0):
+    g = np.random.default_rng(seed)
+    plate = (0.18 * np.exp2(g.uniform(-2, 2, (m.height, m.width, 3)))).astype(np.float32)
+    render = (0.18 * np.exp2(g.uniform(-2, 4, (m.height, m.width, 3)))).astype(np.float32)
+    depth = np.full((m.height, m.width), 2.3, np.float32)
+    alpha = np.zeros((m.height, m.width), np.float32)
+    alpha[8:26, 10:30] = 1.0
+    return plate, render, depth, alpha
+
+
+def test_cli_composites_in_linear_light(model_path, tmp_path):
+    m = BokehModel(model_path, threads=1)
+    plate, render, depth, alpha = _inputs(m)
+    for name, img in (("plate", plate), ("render", render), ("depth", depth), ("alpha", alpha)):
+        write_image(tmp_path / f"{name}.exr", img)
+    rc = main(["--model", str(model_path), "--plate", str(tmp_path / "plate.exr"), "--render", str(tmp_path / "render.exr"),
+               "--depth", str(tmp_path / "depth.exr"), "--alpha", str(tmp_path / "alpha.exr"), "--focus", "2.0",
+               "--out", str(tmp_path / "comp.exr"), "--threads", "1"])
+    assert rc == 0
+    comp = read_image(tmp_path / "comp.exr")
+    np.testing.assert_array_equal(comp[:4], plate[:4])  # far from the mask: the plate untouched
+    blurred = m.render(render, depth, 2.0)
+    np.testing.assert_allclose(comp[13:21, 15:25], blurred[13:21, 15:25], rtol=1e-6)  # deep inside: the blurred CG
+    np.testing.assert_allclose(comp, composite_frame(m, plate, render, depth, alpha, 2.0), rtol=1e-6)
+    edge = comp[8, 15]  # on the eroded, feathered border: a mix
+    assert np.all(np.minimum(plate[8, 15], blurred[8, 15]) - 1e-6 <= edge)
+    assert np.all(edge <= np.maximum(plate[8, 15], blurred[8, 15]) + 1e-6)
+
+
+def test_cli_sequence_with_focus_pull_and_png(model_path, tmp_path):
+    m = BokehModel(model_path, threads=1)
+    plate, render, depth, alpha = _inputs(m, seed=1)
+    write_image(tmp_path / "plate.exr", plate)
+    write_image(tmp_path / "depth.exr", depth)
+    for f in (1, 2, 3):
+        write_image(tmp_path / f"render.{f:04d}.exr", render * f)
+        write_image(tmp_path / f"alpha.{f:04d}.exr", alpha)
+    (tmp_path / "focus.csv").write_text("frame,focus_m\n1,2.0\n3,2.6\n")
+    args = ["--model", str(model_path), "--plate", str(tmp_path / "plate.exr"), "--render", str(tmp_path / "render.%04d.exr"),
+            "--depth", str(tmp_path / "depth.exr"), "--alpha", str(tmp_path / "alpha.%04d.exr"),
+            "--focus-curve", str(tmp_path / "focus.csv"), "--threads", "1"]
+    assert main([*args, "--frames", "1-3", "--out", str(tmp_path / "out" / "comp.%04d.exr")]) == 0
+    outs = [read_image(tmp_path / "out" / f"comp.{f:04d}.exr") for f in (1, 2, 3)]
+    want2 = composite_frame(m, plate, render * 2, depth, alpha, 2.3)  # frame 2: focus interpolated to 2.3 m
+    np.testing.assert_allclose(outs[1], want2, rtol=1e-6)
+    with pytest.raises(SystemExit, match="outside the focus curve"):
+        main([*args, "--frames", "1-4", "--out", str(tmp_path / "x.%04d.exr")])
+    with pytest.raises(SystemExit, match="sequence pattern: give --frames"):
+        main(["--model", str(model_path), "--plate", str(tmp_path / "plate.exr"), "--render", str(tmp_path / "render.%04d.exr"),
+              "--depth", str(tmp_path / "depth.exr"), "--alpha", str(tmp_path / "alpha.0001.exr"), "--focus", "2",
+              "--out", str(tmp_path / "x.exr")])
+    # PNG output: sRGB-encoded; values above 1 are an error unless clipping is asked for
+    png = ["--model", str(model_path), "--plate", str(tmp_path / "plate.exr"), "--render", str(tmp_path / "render.0003.exr"),
+           "--depth", str(tmp_path / "depth.exr"), "--alpha", str(tmp_path / "alpha.0001.exr"), "--focus", "2", "--threads", "1"]
+    with pytest.raises(SystemExit, match="cannot be stored in a PNG"):
+        main([*png, "--out", str(tmp_path / "c.png")])
+    assert main([*png, "--out", str(tmp_path / "c.png"), "--clip-ldr"]) == 0
+    back = read_image(tmp_path / "c.png")  # 16-bit sRGB -> [0, 1]
+    lin_ref = np.clip(composite_frame(m, plate, render * 3, depth, alpha, 2.0), 0, 1)
+    srgb = np.where(lin_ref <= 0.0031308, 12.92 * lin_ref, 1.055 * lin_ref ** (1 / 2.4) - 0.055)  # IEC 61966-2-1
+    np.testing.assert_allclose(back, srgb, atol=2e-3)
+    assert (back == 1.0).any() and back.min() < 0.9
