@@ -99,3 +99,20 @@ def test_cli_sequence_with_focus_pull_and_png(model_path, tmp_path):
     srgb = np.where(lin_ref <= 0.0031308, 12.92 * lin_ref, 1.055 * lin_ref ** (1 / 2.4) - 0.055)  # IEC 61966-2-1
     np.testing.assert_allclose(back, srgb, atol=2e-3)
     assert (back == 1.0).any() and back.min() < 0.9
+
+
+def test_demo_inputs_composite_end_to_end(model_path, tiny_dataset, tmp_path, capsys):
+    from data_tools.demo_composite import main as demo
+
+    scene = sorted(tiny_dataset.glob("scene_*"))[0]
+    assert demo(["--scene", str(scene), "--slice", "1", "--out", str(tmp_path / "demo")]) == 0
+    printed = capsys.readouterr().out
+    command = printed.split("composite: ")[1].split()
+    args = command[command.index("--plate"):]
+    args[args.index("--out") + 1] = str(tmp_path / "demo" / "comp.exr")
+    alpha = read_image(tmp_path / "demo" / "alpha.exr")[..., 0]
+    depth = read_image(tmp_path / "demo" / "depth.exr")[..., 0]
+    assert 0 < alpha.mean() < 1 and np.isinf(depth[alpha == 0]).all() and np.isfinite(depth[alpha > 0]).all()
+    assert main(["--model", str(model_path), *args, "--threads", "1", "--clamp-coc"]) == 0
+    comp, plate = read_image(tmp_path / "demo" / "comp.exr"), read_image(tmp_path / "demo" / "plate.exr")
+    assert np.isfinite(comp).all() and not np.array_equal(comp, plate)

@@ -56,3 +56,13 @@ def test_model_is_pure_definitions():
     # model.py knows nothing of files, datasets or training (DESIGN.md)
     imports = _imports(ROOT / "neuralbokeh" / "model.py")
     assert not any(n.lstrip(".").split(".")[0] in ("io", "data", "training", "OpenImageIO") for n in imports), imports
+
+
+def test_compositing_path_never_imports_torch():
+    # DESIGN.md: compositing machines have no torch
+    for name in ("runtime", "composite", "masks", "normalization", "optics", "checks", "io"):
+        imports = _imports(ROOT / "neuralbokeh" / f"{name}.py")
+        assert not any(n.split(".")[0] in ("torch", "kornia") for n in imports), (name, imports)
+    code = ("import sys, neuralbokeh.runtime, neuralbokeh.composite, neuralbokeh.masks; "
+            "assert 'torch' not in sys.modules, 'torch was imported'")
+    subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)
