@@ -54,7 +54,7 @@ def write_scene(
     coc_px: Sequence[np.ndarray],
     lens: ThinLens,
     focus_distances_m: Sequence[float],
-    aperture: ApertureModel,
+    aperture: ApertureModel | None,
     generator: dict[str, Any],
 ) -> Path:
     """Write one scene atomically in the dataset format.
@@ -67,7 +67,8 @@ def write_scene(
         coc_px: K arrays ``(H, W)``, signed CoC in px, finite.
         lens: the lens the CoC maps were computed with.
         focus_distances_m: K focus distances in m.
-        aperture: the aperture model of the defocus images.
+        aperture: the aperture model of the defocus images; None when unknown (photographs:
+            the lens itself is what the network learns).
         generator: provenance (tool name, version, seed, options); JSON-serialisable.
 
     Returns:
@@ -102,7 +103,7 @@ def write_scene(
         "format_version": FORMAT_VERSION,
         "image_size": {"width": dims["W"], "height": dims["H"]},
         "lens": lens.to_dict(),
-        "aperture": aperture.to_dict(),
+        "aperture": aperture.to_dict() if aperture is not None else None,
         "focus_distances_m": [float(f) for f in focus_distances_m],
         "depth_range_m": [float(finite.min()) if finite.size else None, far if math.isfinite(far) else None],
         "files": {"aif": "aif.exr", "depth": "depth.exr"},

@@ -191,3 +191,15 @@ def test_model_section_mirrors_model_config():
     section = {f.name for f in fields(ModelSection)}
     resolved = {f.name for f in fields(ModelConfig)} - {"image_height", "image_width"}
     assert section == resolved
+
+
+def test_large_kernels_learn_at_lr_over_fan_in():
+    from neuralbokeh.model import NeuralBokeh
+    from neuralbokeh.training.loop import param_groups
+
+    model = NeuralBokeh(ModelConfig(image_height=16, image_width=16, blocks=3, features=2, tile=16, overlap=0))
+    groups = param_groups(model, "fan_in")
+    scales = {g["lr_scale"]: sum(p.numel() for p in g["params"]) for g in groups}
+    assert set(scales) == {1.0, 1 / 9, 1 / 25, 1 / 49}  # 1x1 convs and biases at 1; k x k kernels at 1/k^2
+    assert sum(scales.values()) == sum(p.numel() for p in model.parameters())
+    assert [g["lr_scale"] for g in param_groups(model, "none")] == [1.0]

@@ -10,7 +10,7 @@ Kernel choice (``--kernels``):
 
 * ``direct``: every kernel as trained.
 * ``lowrank:R``: rank R for every kernel where that is cheaper than direct (``2 R < k``).
-* ``auto:EPS`` (default ``auto:0.002``): per convolution the smallest rank R with ``2 R < k``
+* ``auto:EPS`` (default ``auto:0.004``): per convolution the smallest rank R with ``2 R < k``
   whose effect on the *network's output* stays within an error budget: factorising that one
   convolution changes the output on calibration images by at most ``EPS / sqrt(#convs)`` RMS
   (normalised units, outputs in (-1, 1)), so the errors of all convolutions add up to about
@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-DEFAULT_KERNELS = "auto:0.002"
+DEFAULT_KERNELS = "auto:0.004"
 
 
 @dataclass(frozen=True)

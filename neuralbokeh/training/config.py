@@ -62,6 +62,11 @@ class TrainSection:
         steps: optimiser steps.
         batch_size: samples per step over all processes (divisible by the process count).
         lr: Adam learning rate.
+        lr_kernel_scaling: ``"fan_in"`` (default): the per-channel k x k kernels learn at
+            ``lr / k^2``. Adam moves every weight by about ``lr`` per step whatever its fan-in,
+            so a 41x41 kernel's output would move ~1700x more than a 1x1 weight's; dividing by
+            the fan-in gives every layer the same output step (as muP prescribes for Adam).
+            ``"none"``: one learning rate for all (measured: diverges at N = 20 with lr 1e-3).
         lr_schedule: ``"cosine"`` (to 10% of lr) or ``"constant"``, after ``warmup_steps``.
         warmup_steps: linear warm-up steps.
         grad_clip: clip the gradient norm to this value (0 = off).
@@ -78,6 +83,7 @@ class TrainSection:
     batch_size: int = 4
     lr: float = 2e-3
     lr_schedule: str = "cosine"
+    lr_kernel_scaling: str = "fan_in"
     warmup_steps: int = 20
     grad_clip: float = 1.0
     loss: str = "image"
@@ -108,6 +114,7 @@ class TrainConfig:
             ("model.kernels", m.kernels, KERNELS),
             ("model.head", m.head, HEADS),
             ("train.lr_schedule", t.lr_schedule, ("cosine", "constant")),
+            ("train.lr_kernel_scaling", t.lr_kernel_scaling, ("fan_in", "none")),
             ("train.loss", t.loss, ("image", "tile")),
         ):
             if value not in allowed:

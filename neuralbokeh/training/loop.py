@@ -77,6 +77,18 @@ def compute_loss(model: torch.nn.Module, x: torch.Tensor, y: torch.Tensor, kind:
     return F.mse_loss(model(x), y)
 
 
+def param_groups(model: NeuralBokeh, scaling: str) -> list[dict[str, Any]]:
+    """Adam parameter groups, each with an ``lr_scale``: per-channel k x k kernels at ``1 / k^2``
+    with ``scaling = "fan_in"`` (see ``TrainSection.lr_kernel_scaling``), everything else at 1."""
+    groups: dict[float, list[torch.nn.Parameter]] = {}
+    for name, p in model.named_parameters():
+        scale = 1.0
+        if scaling == "fan_in" and name.endswith("conv.weight") and p.ndim == 4:
+            scale = 1.0 / (p.shape[-1] * p.shape[-2])
+        groups.setdefault(scale, []).append(p)
+    return [{"params": ps, "lr_scale": s} for s, ps in sorted(groups.items(), reverse=True)]
+
+
 def _lr_factor(step: int, cfg: TrainConfig) -> float:
     t = cfg.train
     if step < t.warmup_steps:
@@ -203,7 +215,7 @@ def train(
 
     torch.manual_seed(t.seed)
     model = NeuralBokeh(mcfg).to(device)
-    optimizer = torch.optim.Adam(model.parameters(), lr=t.lr)
+    optimizer = torch.optim.Adam(param_groups(model, t.lr_kernel_scaling), lr=t.lr)
     start, skipped = 0, 0
     if resume:
         ck = load_checkpoint(resume, map_location=device)
@@ -262,7 +274,7 @@ def train(
             order, order_epoch = list(sampler), epoch
         x, y, names = samples.batch(order[pos * per_rank : (pos + 1) * per_rank], device)
         for group in optimizer.param_groups:  # the schedule is a function of the step alone
-            group["lr"] = t.lr * _lr_factor(step, cfg)
+            group["lr"] = group["lr_scale"] * t.lr * _lr_factor(step, cfg)
         optimizer.zero_grad(set_to_none=True)
         loss = compute_loss(net, x, y, t.loss)
         loss.backward()
@@ -296,7 +308,7 @@ def train(
             out_of_time = time_limit_s is not None and time.perf_counter() - t0 > time_limit_s
         if out_of_time:
             last = done
-        row = {"step": done, "loss": loss.item(), "lr": optimizer.param_groups[0]["lr"], "skipped": skipped}
+        row = {"step": done, "loss": loss.item(), "lr": t.lr * _lr_factor(step - 1, cfg), "skipped": skipped}
         if done % t.eval_every == 0 or done == last:
             if lead and test_samples:
                 metrics = evaluate(model, test_samples, device, baselines)

@@ -1,0 +1,245 @@
+"""RAW focal stacks -> training triples: ``python -m data_tools.raw STACK_DIR [STACK_DIR ...] --out DIR``.
+
+A stack is a folder of RAW files (anything LibRaw reads) of one static scene at different focus
+distances. Per stack: linear decode with one white balance (``--white-balance``, from the
+reference slice) and one exposure normalisation (the reference slice's mean luminance -> 0.18),
+alignment of every slice to the reference (the middle slice) with a similarity transform,
+crop to the common area, optional area-averaged downscale (``--size``), all-in-focus fusion and
+depth from focus (or ``--depth FILE``), a CoC map per slice, all written as one scene of the
+dataset format (``scene.json`` records the metadata, white balance, exposure factor, alignment
+per slice with its residual, and the crop).
+
+Focus distances: ``--focus-distances 0.5,0.7,...`` (in file-name order, for every stack),
+``--focus-csv`` (``file,focus_m`` rows) or the files' EXIF SubjectDistance. Lens: focal length
+and f-number from EXIF unless given; the sensor width (of the long side, mm) must be given
+(cameras do not record it). A file that cannot be used is named with the reason and dropped;
+the rest of its stack (if >= 2 slices remain) and all other stacks are still written, and the
+exit status is 1. Finished scenes are skipped on a rerun.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import logging
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from tqdm import tqdm
+
+from neuralbokeh import __version__
+from neuralbokeh.data import write_scene
+from neuralbokeh.io import read_image
+from neuralbokeh.optics import ThinLens
+
+from .align import align_stack
+from .decode import RAW_EXTENSIONS, DecodeSettings, RawDecodeError, decode, read_metadata, white_balance
+from .fuse import fuse_stack
+
+log = logging.getLogger("data_tools.raw")
+
+
+def _area_resize(img: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    w, h = size
+    x = torch.from_numpy(np.ascontiguousarray(np.atleast_3d(img).transpose(2, 0, 1), dtype=np.float64))[None]
+    out = F.interpolate(x, size=(h, w), mode="area")[0].numpy().transpose(1, 2, 0)
+    return out if img.ndim == 3 else out[..., 0]
+
+
+def _focus_from_csv(path: Path) -> dict[str, float]:
+    table = {}
+    with open(path, newline="") as f:
+        for n, row in enumerate(csv.reader(f), 1):
+            if not row or row[0].startswith("#"):
+                continue
+            try:
+                table[Path(row[0].strip()).name] = float(row[1])
+            except (ValueError, IndexError):
+                if n > 1:
+                    raise ValueError(f"{path}:{n}: expected 'file,focus_m', got {row!r}") from None
+    return table
+
+
+def stack_files(folder: Path) -> list[Path]:
+    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in RAW_EXTENSIONS and not p.name.startswith("."))
+    if len(files) < 2:
+        raise ValueError(f"{folder}: a focal stack needs >= 2 RAW files, found {len(files)}")
+    return files
+
+
+def focus_distances(files: list[Path], metas: list[dict], args: argparse.Namespace) -> list[float]:
+    if args.focus_distances:
+        values = [float(v) for v in args.focus_distances.split(",")]
+        if len(values) != len(files):
+            raise ValueError(f"--focus-distances has {len(values)} values for {len(files)} files in {files[0].parent}")
+        return values
+    if args.focus_csv:
+        table = _focus_from_csv(args.focus_csv)
+        missing = [f.name for f in files if f.name not in table]
+        if missing:
+            raise ValueError(f"{args.focus_csv} has no focus distance for {missing}")
+        return [table[f.name] for f in files]
+    missing = [f.name for f, m in zip(files, metas) if m["focus_distance_m"] is None]
+    if missing:
+        raise ValueError(f"no focus distance in the metadata of {missing}: give --focus-distances or --focus-csv")
+    return [m["focus_distance_m"] for m in metas]
+
+
+def lens_for(metas: list[dict], args: argparse.Namespace, stack: Path) -> ThinLens:
+    def pick(option: float | None, key: str, flag: str, unit: str) -> float:
+        if option is not None:
+            return option
+        values = {m[key] for m in metas if m[key] is not None}
+        if not values:
+            raise ValueError(f"{stack}: no {key.replace('_', ' ')} in the metadata: give {flag} ({unit})")
+        if len(values) > 1:
+            raise ValueError(f"{stack}: the files disagree on {key} ({sorted(values)}): give {flag}")
+        return values.pop()
+
+    if args.sensor_width is None:
+        raise ValueError("cameras do not record the sensor width: give --sensor-width (mm, long side)")
+    return ThinLens(pick(args.focal_length, "focal_length_mm", "--focal-length", "mm"),
+                    pick(args.f_number, "f_number", "--f-number", "f-number"), args.sensor_width)
+
+
+def process_stack(stack: Path, out: Path, args: argparse.Namespace, failures: list[str]) -> dict[str, Any] | None:
+    """Decode, align, fuse and write one stack; returns a summary (None if skipped)."""
+    folder = out / stack.name
+    if folder.exists():
+        return None
+    files = stack_files(stack)
+    metas = [read_metadata(f) for f in files]
+    focus = focus_distances(files, metas, args)
+    bad = [(f.name, d) for f, d in zip(files, focus) if not d > 0]
+    if bad:
+        raise ValueError(f"{stack}: focus distances must be > 0 m (inf allowed), got {bad}")
+    order = sorted(range(len(files)), key=lambda i: focus[i])  # near to far: neighbours are defocused alike
+    files, metas, focus = [files[i] for i in order], [metas[i] for i in order], [focus[i] for i in order]
+    lens = lens_for(metas, args, stack)
+    settings = DecodeSettings(args.demosaic, args.half_size)
+    ref = len(files) // 2
+    wb = white_balance(files[ref], args.white_balance)
+    images, kept = [], []
+    for f, fm in zip(files, focus):
+        try:
+            images.append(decode(f, wb, settings))
+            kept.append((f, fm))
+        except RawDecodeError as e:
+            failures.append(str(e))
+            log.error("%s", e)
+    if len(images) < 2:
+        raise ValueError(f"{stack}: fewer than 2 usable slices")
+    shapes = {im.shape for im in images}
+    if len(shapes) != 1:
+        raise ValueError(f"{stack}: slices have different sizes {sorted(shapes)}")
+    decoded_h, decoded_w = images[0].shape[:2]
+    ref = len(images) // 2  # the middle of the usable slices
+    y = images[ref].mean()
+    if y <= 0:
+        raise ValueError(f"{stack}: the reference slice {kept[ref][0].name} is black")
+    exposure = 0.18 / float(y)
+    images = [im * exposure for im in images]
+    if args.no_align:
+        aligned, info, crop = images, [], (slice(0, decoded_h), slice(0, decoded_w))
+    else:
+        aligned, info, crop = align_stack(images, ref, rotation=args.rotation)
+    crop_h, crop_w = aligned[0].shape[:2]
+    size = tuple(args.size) if args.size else (crop_w, crop_h)
+    if size != (crop_w, crop_h):
+        aligned = [_area_resize(a, size) for a in aligned]
+    focus_kept = [fm for _, fm in kept]
+    if args.depth:
+        depth_in = read_image(args.depth)[..., 0].astype(np.float64)
+        if depth_in.shape != (decoded_h, decoded_w):
+            raise ValueError(f"--depth {args.depth} is {depth_in.shape[1]}x{depth_in.shape[0]}, the decoded stack "
+                             f"{decoded_w}x{decoded_h}")
+        with np.errstate(divide="ignore"):
+            dio = _area_resize(1.0 / depth_in[crop], size)  # average in diopters: inf depth -> 0
+        fused = fuse_stack(aligned, focus_kept, args.window, known_diopters=dio)
+    else:
+        fused = fuse_stack(aligned, focus_kept, args.window)
+    # the scene's lens: the cropped sensor mapped onto the output width (CoC in output pixels)
+    long_side = max(decoded_h, decoded_w)
+    pitch_mm = lens.sensor_width_mm / long_side * (crop_w / size[0])
+    scene_lens = ThinLens(lens.focal_length_mm, lens.f_number, pitch_mm * size[0])
+    cocs = [scene_lens.coc_px(fused.depth_m.astype(np.float64), fm, size[0], signed=True) for fm in focus_kept]
+    generator = {
+        "name": "data_tools.raw", "version": __version__, "stack": str(stack),
+        "files": [f.name for f, _ in kept], "failed": [s for s in failures if str(stack) in s],
+        "metadata": [m for m, f in zip(metas, files) if f in {k for k, _ in kept}],
+        "white_balance": list(wb), "exposure_factor": exposure, "demosaic": settings.demosaic,
+        "half_size": settings.half_size, "reference_slice": ref,
+        "alignment": [a.to_dict() for a in info], "crop": {"rows": [crop[0].start, crop[0].stop],
+                                                           "cols": [crop[1].start, crop[1].stop]},
+        "output_size": list(size), "depth_source": str(args.depth) if args.depth else "depth from focus",
+        "depth_confidence_mean": float(fused.confidence.mean()), "sensor_width_mm_given": lens.sensor_width_mm,
+    }
+    write_scene(folder, fused.aif.astype(np.float64), fused.depth_m.astype(np.float64),
+                [a.astype(np.float64) for a in aligned], cocs, scene_lens, focus_kept, None, generator)
+    residual = max((a.residual_px for a in info), default=0.0)
+    return {"stack": stack.name, "slices": len(aligned), "size": size, "residual_px": residual,
+            "max_coc_px": float(max(np.abs(c).max() for c in cocs))}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m data_tools.raw", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("stacks", nargs="+", type=Path, help="folders of RAW files, one static scene each")
+    p.add_argument("--out", type=Path, required=True, help="dataset folder to write scenes into")
+    p.add_argument("--focus-distances", help="comma-separated focus distances in m, in file-name order")
+    p.add_argument("--focus-csv", type=Path, help="CSV of file,focus_m")
+    p.add_argument("--focal-length", type=float, help="mm (default: EXIF)")
+    p.add_argument("--f-number", type=float, help="default: EXIF")
+    p.add_argument("--sensor-width", type=float, help="mm, the sensor's long side (required)")
+    p.add_argument("--size", type=int, nargs=2, metavar=("W", "H"), help="area-averaged output size")
+    p.add_argument("--depth", type=Path, help="depth map in m at the decoded size (one stack) instead of depth from focus")
+    p.add_argument("--white-balance", default="camera", help="camera | daylight | none | R,G,B multipliers")
+    p.add_argument("--demosaic", default="AHD", help="LibRaw demosaic algorithm (AHD, DCB, PPG, VNG, LINEAR, ...)")
+    p.add_argument("--half-size", action="store_true", help="average 2x2 CFA blocks instead of demosaicing")
+    p.add_argument("--rotation", action="store_true", help="also fit a rotation when aligning")
+    p.add_argument("--no-align", action="store_true", help="the slices are already registered")
+    p.add_argument("--window", type=float, default=2.0, help="focus-measure window sigma in px (default 2)")
+    p.add_argument("-v", "--verbose", action="store_true")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(message)s")
+    if "," in args.white_balance:
+        try:
+            args.white_balance = tuple(float(v) for v in args.white_balance.split(","))
+        except ValueError:
+            raise SystemExit(f"error: --white-balance R,G,B must be numbers, got {args.white_balance!r}") from None
+    if args.depth and len(args.stacks) != 1:
+        raise SystemExit("error: --depth applies to one stack; give one STACK_DIR")
+    args.out.mkdir(parents=True, exist_ok=True)
+    failures: list[str] = []
+    rows = []
+    for stack in tqdm(args.stacks, desc="stacks", unit="stack", disable=len(args.stacks) < 2):
+        try:
+            row = process_stack(stack, args.out, args, failures)
+        except (ValueError, FileNotFoundError, OSError) as e:
+            failures.append(f"{stack}: {e}")
+            log.error("%s: %s", stack, e)
+            continue
+        rows.append(row or {"stack": stack.name, "skipped": True})
+    for r in rows:
+        if r.get("skipped"):
+            print(f"{r['stack']:<24} already written, skipped")
+        else:
+            print(f"{r['stack']:<24} {r['slices']} slices {r['size'][0]}x{r['size'][1]} px, alignment residual "
+                  f"<= {r['residual_px']:.3f} px, max |CoC| {r['max_coc_px']:.2f} px")
+    for f in failures:
+        print(f"FAILED  {f}")
+    print(f"dataset {args.out}: {sum(not r.get('skipped') for r in rows)} scene(s) written; train with "
+          f"data.roots=['{args.out}']")
+    return 1 if failures else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
