@@ -93,18 +93,22 @@ def decode(path: Path, wb: tuple[float, float, float], settings: DecodeSettings 
             or an image that decodes to all zeros (DNGs whose image data was stripped).
     """
     with _open(path) as raw:
-        if raw.raw_pattern is None or raw.num_colors != 3:
-            raise RawDecodeError(f"{path}: not a colour-filter-array RAW (raw type {raw.raw_type.name}, "
-                                 f"{raw.num_colors} colours): a scanner or pre-demosaiced file is not supported")
-        try:
-            rgb = raw.postprocess(
-                demosaic_algorithm=rawpy.DemosaicAlgorithm[settings.demosaic.upper()], half_size=settings.half_size,
-                use_camera_wb=False, use_auto_wb=False, user_wb=[wb[0], wb[1], wb[2], wb[1]],
-                output_color=rawpy.ColorSpace.raw, output_bps=16, gamma=(1.0, 1.0), no_auto_bright=True,
-                highlight_mode=rawpy.HighlightMode.Clip, user_flip=None, adjust_maximum_thr=0.0,
-            )
+        try:  # LibRaw unpacks lazily: a truncated file fails at the first attribute that needs the data
+            cfa = raw.raw_pattern is not None and raw.num_colors == 3
+            kind = f"raw type {raw.raw_type.name}, {raw.num_colors} colours"
+            rgb = None
+            if cfa:
+                rgb = raw.postprocess(
+                    demosaic_algorithm=rawpy.DemosaicAlgorithm[settings.demosaic.upper()], half_size=settings.half_size,
+                    use_camera_wb=False, use_auto_wb=False, user_wb=[wb[0], wb[1], wb[2], wb[1]],
+                    output_color=rawpy.ColorSpace.raw, output_bps=16, gamma=(1.0, 1.0), no_auto_bright=True,
+                    highlight_mode=rawpy.HighlightMode.Clip, user_flip=None, adjust_maximum_thr=0.0,
+                )
         except (rawpy.LibRawError, OSError) as e:
             raise RawDecodeError(f"{path}: LibRaw cannot decode it ({type(e).__name__}: {e})") from None
+    if not cfa:
+        raise RawDecodeError(f"{path}: not a colour-filter-array RAW ({kind}): a scanner's or an already "
+                             "demosaiced (linear DNG) file is not supported")
     if rgb.max() == 0:
         raise RawDecodeError(f"{path}: decodes to an all-zero image (image data missing or stripped)")
     return rgb.astype(np.float32) / 65535.0
