@@ -71,3 +71,13 @@ def busy_checkpoint(trained_checkpoint, tmp_path_factory) -> Path:
     path = tmp_path_factory.mktemp("busy") / "busy.pt"
     save_checkpoint(path, {k: v for k, v in data.items() if k not in ("format", "format_version", "package_version")})
     return path
+
+
+@pytest.fixture(scope="session")
+def busy_onnx(busy_checkpoint, tmp_path_factory) -> Path:
+    """``busy_checkpoint`` exported to ONNX with direct kernels."""
+    from neuralbokeh.export.exporter import export_checkpoint
+
+    path = tmp_path_factory.mktemp("onnx") / "busy.onnx"
+    export_checkpoint(busy_checkpoint, path, kernels="direct", threads=1)
+    return path

@@ -7,7 +7,6 @@ from kornia.filters import gaussian_blur2d
 from kornia.morphology import erosion
 
 from neuralbokeh.composite import composite_frame, main
-from neuralbokeh.export.exporter import export_checkpoint
 from neuralbokeh.io import read_image, write_image
 from neuralbokeh.masks import erode, gaussian_blur
 from neuralbokeh.runtime import BokehModel
@@ -30,11 +29,9 @@ def test_gaussian_blur_matches_kornia(sigma):
     np.testing.assert_allclose(gaussian_blur(m, sigma), want.numpy(), atol=1e-6)
 
 
-@pytest.fixture(scope="module")
-def model_path(busy_checkpoint, tmp_path_factory):
-    path = tmp_path_factory.mktemp("comp") / "lens.onnx"
-    export_checkpoint(busy_checkpoint, path, kernels="direct", threads=1)
-    return path
+@pytest.fixture
+def model_path(busy_onnx):
+    return busy_onnx
 
 
 def _inputs(m: BokehModel, seed=0):

@@ -2,6 +2,7 @@
 real camera files of ../shared/data/raw."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -140,3 +141,29 @@ def test_real_camera_files_decode_or_fail_clearly(shared_data):
     with pytest.raises(RawDecodeError, match="LibRaw cannot"):
         decode(stripped / "Issue_247-1_D70s.nef", (1.0, 1.0, 1.0))
     assert read_metadata(stripped / "Issue_247-1_D70s.nef")["f_number"] == pytest.approx(2.8)
+
+
+def test_train_py_consumes_the_raw_dataset(stack, tmp_path):
+    from neuralbokeh.training import load_config, train
+
+    root, _ = stack
+    cfg = tmp_path / "cfg.toml"
+    cfg.write_text(f"""
+[data]
+roots = ["{root / 'ds'}"]
+test_fraction = 0.0
+[model]
+blocks = 2
+features = 2
+tile = 32
+overlap = 8
+[train]
+steps = 2
+batch_size = 2
+eval_every = 2
+checkpoint_every = 2
+out_dir = "{tmp_path / 'run'}"
+threads = 1
+""")
+    summary = train(load_config(cfg), progress=False)
+    assert summary["steps"] == 2 and summary["train_samples"] == 5 and Path(summary["checkpoint"]).is_file()

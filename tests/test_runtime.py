@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 import torch
 
-from neuralbokeh.export.exporter import export_checkpoint
 from neuralbokeh.normalization import Normalization
 from neuralbokeh.runtime import BokehModel
 from neuralbokeh.training import load_model
@@ -17,11 +16,9 @@ from neuralbokeh.training import load_model
 ROOT = Path(__file__).resolve().parents[1]
 
 
-@pytest.fixture(scope="module")
-def exported(busy_checkpoint, tmp_path_factory):
-    path = tmp_path_factory.mktemp("onnx") / "busy.onnx"
-    export_checkpoint(busy_checkpoint, path, kernels="direct", threads=1)
-    return path
+@pytest.fixture
+def exported(busy_onnx):
+    return busy_onnx
 
 
 def _scene(model: BokehModel, seed=0):

@@ -37,7 +37,14 @@ from neuralbokeh.io import read_image
 from neuralbokeh.optics import ThinLens
 
 from .align import align_stack
-from .decode import RAW_EXTENSIONS, DecodeSettings, RawDecodeError, decode, read_metadata, white_balance
+from .decode import (
+    RAW_EXTENSIONS,
+    DecodeSettings,
+    RawDecodeError,
+    decode,
+    read_metadata,
+    white_balance,
+)
 from .fuse import fuse_stack
 
 log = logging.getLogger("data_tools.raw")

@@ -18,9 +18,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 import torch.nn.functional as F
+from kornia.geometry import create_meshgrid
 from kornia.geometry.linalg import transform_points
 from kornia.geometry.transform import HomographyWarper, ImageRegistrator
-from kornia.utils import create_meshgrid
 from kornia.geometry.transform.image_registrator import Similarity
 
 log = logging.getLogger(__name__)

@@ -55,7 +55,13 @@ def write_dng(path: Path, cfa: np.ndarray, lens: ThinLens, focus_m: float, make:
               model: str = "synthetic") -> None:
     """Write a 16-bit RGGB DNG of sensor values ``cfa`` (uint16, black/white levels above)."""
     from pidng.core import RAW2DNG, DNGTags, Tag
-    from pidng.defs import CalibrationIlluminant, CFAPattern, DNGVersion, Orientation, PhotometricInterpretation
+    from pidng.defs import (
+        CalibrationIlluminant,
+        CFAPattern,
+        DNGVersion,
+        Orientation,
+        PhotometricInterpretation,
+    )
 
     h, w = cfa.shape
     t = DNGTags()
