@@ -1,0 +1,226 @@
+"""Error against run time for every method on a held-out set.
+
+    python -m neuralbokeh.evaluate --data DIR --models a.onnx b.pt --baselines all --out report/
+
+Methods: trained models (``.onnx`` through ``neuralbokeh.runtime``, ``.pt`` checkpoints through
+PyTorch) and the baselines of ``neuralbokeh.render.baselines``: ``identity`` (the AIF returned),
+``gaussian`` (CoC-driven Gaussian), ``gather`` (naive gather with the data's aperture) and
+``scatter`` (the reference renderer with the data's aperture: with synthetic data made by the
+same renderer this is an oracle, the best any method fed AIF + CoC can do).
+
+Per method and held-out sample: the metrics of ``neuralbokeh.metrics`` (PSNR/SSIM in linear
+light and tone-mapped sRGB, HDR-FLIP) and the wall time per megapixel, the median of
+``--repeats`` runs in this process with ``--threads`` threads. Writes ``report.json``,
+``report.md``, ``error_vs_runtime.png`` (log time axis, Pareto front marked) and image grids
+(AIF | ground truth | each method, error maps below) for the median and the worst scene.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import statistics
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from .apertures import ApertureModel
+from .data import FocalStackDataset
+from .io import write_image, write_json
+from .metrics import image_metrics, pareto_front, tonemap_srgb
+from .normalization import Normalization
+from .render import scatter_defocus
+from .render.baselines import gather_defocus, gaussian_defocus
+
+log = logging.getLogger(__name__)
+BASELINES = ("identity", "gaussian", "gather", "scatter")
+Method = Callable[[np.ndarray, np.ndarray], np.ndarray]  # (aif (H, W, 3), coc px (H, W)) -> (H, W, 3)
+
+
+def _torch_method(fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]) -> Method:
+    def run(aif: np.ndarray, coc: np.ndarray) -> np.ndarray:
+        x = torch.from_numpy(aif.transpose(2, 0, 1).astype(np.float64))[None]
+        c = torch.from_numpy(coc.astype(np.float64))[None, None]
+        return fn(x, c)[0].numpy().transpose(1, 2, 0)
+    return run
+
+
+def baseline_methods(names: list[str], aperture: ApertureModel | None) -> dict[str, Method]:
+    """The named baselines; ``gather``/``scatter`` use ``aperture`` (a disk when unknown)."""
+    ap = aperture or ApertureModel()
+    table: dict[str, Method] = {
+        "identity": lambda aif, coc: aif.copy(),
+        "gaussian": _torch_method(gaussian_defocus),
+        "gather": _torch_method(lambda x, c: gather_defocus(x, c, ap)),
+        "scatter": _torch_method(lambda x, c: scatter_defocus(x, c, ap)),
+    }
+    unknown = [n for n in names if n not in table]
+    if unknown:
+        raise ValueError(f"unknown baselines {unknown}; expected some of {list(table)} or 'all'")
+    return {n: table[n] for n in names}
+
+
+def model_method(path: Path, threads: int) -> Method:
+    """A trained model: ``.onnx`` (onnxruntime, in-focus tiles skipped) or a ``.pt`` checkpoint."""
+    if path.suffix == ".onnx":
+        from .runtime import BokehModel
+
+        m = BokehModel(path, threads=threads)
+        return lambda aif, coc: m.render_coc(aif, coc)
+    from .training.checkpoint import load_model
+
+    model, ckpt = load_model(path)
+    norm, scale = Normalization.from_dict(ckpt["normalization"]), float(ckpt["coc_scale_px"])
+
+    def run(aif: np.ndarray, coc: np.ndarray) -> np.ndarray:
+        x = np.concatenate([norm.encode(aif.astype(np.float64)).transpose(2, 0, 1), coc[None] / scale])
+        with torch.no_grad():
+            y = model(torch.from_numpy(x[None]).float())[0].double().numpy()
+        return norm.decode(y).transpose(1, 2, 0)
+    return run
+
+
+def _median_ms(fn: Callable[[], Any], repeats: int) -> tuple[float, Any]:
+    times, out = [], None
+    for _ in range(repeats):
+        t = time.perf_counter()
+        out = fn()
+        times.append(1000.0 * (time.perf_counter() - t))
+    return statistics.median(times), out
+
+
+def evaluate(methods: dict[str, Method], samples: list[dict], repeats: int = 3) -> dict[str, Any]:
+    """Metrics and time per method; ``samples`` are linear items of a ``FocalStackDataset``
+    (``normalize=False``). Returns ``{"methods": {name: {...}}, "predictions": {name: [...]}}``."""
+    results, predictions = {}, {}
+    for name, fn in methods.items():
+        per, preds = [], []
+        for it in samples:
+            aif = it["aif"].numpy().transpose(1, 2, 0).astype(np.float64)
+            coc = it["coc"][0].numpy().astype(np.float64)
+            gt = it["defocus"].numpy().transpose(1, 2, 0).astype(np.float64)
+            ms, pred = _median_ms(lambda: fn(aif, coc), repeats)
+            pred = np.asarray(pred, dtype=np.float64)
+            # the normalisation admits values down to -offset (a small negative); metrics and FLIP
+            # take light >= 0, so predictions are measured with negatives at 0 and the minimum kept
+            m = image_metrics(np.maximum(pred, 0.0), gt)
+            m["min_value"] = float(pred.min())
+            m["ms_per_mp"] = ms / (aif.shape[0] * aif.shape[1] / 1e6)
+            m["sample"] = f"{it['scene']}#{it['slice']}"
+            per.append(m)
+            preds.append(pred)
+        keys = [k for k in per[0] if k not in ("sample", "min_value")]
+        summary = {k: float(np.mean([p[k] for p in per])) for k in keys}
+        summary["ms_per_mp"] = float(np.median([p["ms_per_mp"] for p in per]))
+        results[name] = {**summary, "per_sample": per}
+        predictions[name] = preds
+        log.info("%s: %s", name, {k: round(v, 4) for k, v in summary.items()})
+    return {"methods": results, "predictions": predictions}
+
+
+def write_report(out: Path, result: dict[str, Any], samples: list[dict], info: dict[str, Any]) -> list[Path]:
+    """report.json, report.md, error_vs_runtime.png and the two image grids; returns the paths."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out.mkdir(parents=True, exist_ok=True)
+    methods = result["methods"]
+    names = list(methods)
+    written = [write_json(out / "report.json", {"info": info, "methods": methods})]
+    cols = ["psnr_linear", "ssim_linear", "psnr_srgb", "ssim_srgb", "flip_hdr", "ms_per_mp"]
+    lines = [f"# Evaluation on {info['samples']} held-out samples ({info['data']})", "",
+             f"Threads: {info['threads']}; time: median of {info['repeats']} runs per sample, median over samples.", "",
+             "| method | PSNR lin dB | SSIM lin | PSNR sRGB dB | SSIM sRGB | FLIP | ms/MP |", "|---|---|---|---|---|---|---|"]
+    for n in names:
+        m = methods[n]
+        lines.append(f"| {n} | " + " | ".join(f"{m[c]:.4f}" if "ssim" in c or "flip" in c else f"{m[c]:.2f}" for c in cols) + " |")
+    tmp = out / ".report.md.tmp"
+    tmp.write_text("\n".join(lines) + "\n")
+    tmp.replace(out / "report.md")
+    written.append(out / "report.md")
+
+    points = [(max(methods[n]["ms_per_mp"], 1e-3), methods[n]["flip_hdr"]) for n in names]
+    front = set(pareto_front(points))
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for i, (n, (t, e)) in enumerate(zip(names, points)):
+        ax.scatter([t], [e], marker="o" if i in front else "x", s=60)
+        ax.annotate(n, (t, e), textcoords="offset points", xytext=(5, 5), fontsize=8)
+    fr = sorted(points[i] for i in front)
+    ax.plot([p[0] for p in fr], [p[1] for p in fr], "--", lw=1, label="Pareto front")
+    ax.set_xscale("log")
+    ax.set_xlabel("wall time per megapixel (ms, log)")
+    ax.set_ylabel("mean HDR-FLIP (lower is better)")
+    ax.legend()
+    fig.tight_layout()
+    tmp = out / ".error_vs_runtime.png.tmp.png"
+    fig.savefig(tmp, dpi=120)
+    plt.close(fig)
+    tmp.replace(out / "error_vs_runtime.png")
+    written.append(out / "error_vs_runtime.png")
+
+    ref = names[0]
+    order = np.argsort([p["flip_hdr"] for p in methods[ref]["per_sample"]])
+    for label, idx in (("median", int(order[len(order) // 2])), ("worst", int(order[-1]))):
+        it = samples[idx]
+        aif = it["aif"].numpy().transpose(1, 2, 0)
+        gt = it["defocus"].numpy().transpose(1, 2, 0)
+        preds = [np.maximum(result["predictions"][n][idx], 0.0) for n in names]
+        top = np.concatenate([tonemap_srgb(a) for a in (aif, gt, *preds)], axis=1)
+        errs = [np.zeros_like(aif), np.zeros_like(aif)] + [np.clip(4 * np.abs(tonemap_srgb(p) - tonemap_srgb(gt)), 0, 1)
+                                                          for p in preds]
+        grid = np.concatenate([top, np.concatenate(errs, axis=1)], axis=0)
+        path = out / f"grid_{label}.png"
+        write_image(path, np.round(np.clip(grid, 0, 1) * 255).astype(np.uint8), pixel_type="uint8")
+        written.append(path)
+    return written
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m neuralbokeh.evaluate", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--data", type=Path, required=True, help="dataset folder")
+    p.add_argument("--models", type=Path, nargs="*", default=[], help=".onnx files or .pt checkpoints")
+    p.add_argument("--baselines", default="all", help="'all', 'none' or a comma list of " + ", ".join(BASELINES))
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--test-fraction", type=float, default=0.2)
+    p.add_argument("--split-seed", type=int, default=0)
+    p.add_argument("--samples", type=int, default=0, help="evaluate the first N held-out samples (0: all)")
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--threads", type=int, default=2)
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stdout)
+    torch.set_num_threads(args.threads)
+    try:
+        ds = FocalStackDataset(args.data, "test", args.test_fraction, args.split_seed, normalize=False)
+        if len(ds) == 0:
+            raise ValueError(f"{args.data}: no held-out samples with test_fraction {args.test_fraction}")
+        n = len(ds) if args.samples <= 0 else min(args.samples, len(ds))
+        samples = [ds[i] for i in range(n)]
+        apertures = {json.dumps(m["aperture"], sort_keys=True) for m in ds.metas}
+        aperture = ApertureModel.from_dict(ds.metas[0]["aperture"]) if len(apertures) == 1 and ds.metas[0]["aperture"] else None
+        names = [] if args.baselines == "none" else list(BASELINES) if args.baselines == "all" else args.baselines.split(",")
+        methods = {str(m.name): model_method(m, args.threads) for m in args.models}
+        methods.update(baseline_methods(names, aperture))
+        if not methods:
+            raise ValueError("nothing to evaluate: give --models and/or --baselines")
+    except (FileNotFoundError, ValueError) as e:
+        raise SystemExit(f"error: {e}")
+    result = evaluate(methods, samples, args.repeats)
+    info = {"data": str(args.data), "samples": n, "threads": args.threads, "repeats": args.repeats,
+            "aperture": ds.metas[0]["aperture"] if aperture else None}
+    for path in write_report(args.out, result, samples, info):
+        log.info("wrote %s", path)
+    log.info("%s", (args.out / "report.md").read_text())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,88 @@
+"""Baselines, metrics and the evaluation report."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from neuralbokeh.apertures import ApertureModel, Polygon
+from neuralbokeh.evaluate import main
+from neuralbokeh.metrics import flip_hdr, image_metrics, pareto_front, tonemap_srgb
+from neuralbokeh.render import scatter_defocus
+from neuralbokeh.render.baselines import gather_defocus, gaussian_defocus
+
+
+def _point(coc_px: float, size: int = 48):
+    x = torch.full((1, 3, size, size), 0.1, dtype=torch.float64)
+    x[..., size // 2, size // 2 - 4] = 1000.0
+    return x, torch.full((1, 1, size, size), coc_px, dtype=torch.float64)
+
+
+def test_gather_equals_scatter_under_uniform_coc_and_keeps_flux():
+    x, c = _point(9.0)
+    ap = ApertureModel(Polygon(7))
+    g = gather_defocus(x, c, ap)
+    assert float((g - scatter_defocus(x, c, ap)).abs().max()) < 1e-9
+    assert float(g.sum()) == pytest.approx(float(x.sum()), rel=1e-9)
+    assert float(g.max()) < 1000.0 / 20  # the point is spread over the 9 px heptagon
+
+
+def test_gaussian_point_light_is_round_and_keeps_flux():
+    x, c = _point(9.0)
+    out = gaussian_defocus(x, c)[0, 1].numpy() - 0.1
+    assert out.sum() == pytest.approx(1000.0, rel=1e-3)
+    cy, cx = 24, 20
+    assert out[cy, cx + 3] == pytest.approx(out[cy + 3, cx], rel=1e-6)  # isotropic
+    assert out[cy, cx] > out[cy, cx + 3] > out[cy, cx + 6] > 0
+
+
+def test_step_edge_at_a_depth_discontinuity():
+    size = 48
+    x = torch.full((1, 3, size, size), 0.2, dtype=torch.float64)
+    x[..., : size // 2] = 5.0  # a bright in-focus foreground on the left
+    c = torch.full((1, 1, size, size), 9.0, dtype=torch.float64)
+    c[..., : size // 2] = 0.0
+    ap = ApertureModel(Polygon(7))
+    g, s = gather_defocus(x, c, ap), scatter_defocus(x, c, ap)
+    assert torch.allclose(g[..., : size // 2], x[..., : size // 2], atol=1e-9)  # CoC 0 gathers only itself
+    # naive gather: the blurred background next to the edge gathers the sharp foreground (leak)
+    assert float(g[0, 0, 20, size // 2 + 1]) > 1.0 and float(g[0, 0, 20, size // 2 + 1]) > float(s[0, 0, 20, size // 2 + 1])
+    gs = gaussian_defocus(x, c)
+    assert torch.allclose(gs[..., : size // 2 - 1], x[..., : size // 2 - 1], atol=1e-9)  # sharp foreground stays sharp
+
+
+def test_metrics_against_hand_values():
+    ref = np.zeros((16, 20, 3))
+    ref[0, 0, 0] = 1.0  # peak 1
+    m = image_metrics(ref + 0.1, ref)
+    assert m["psnr_linear"] == pytest.approx(20.0, abs=1e-4)  # MSE 0.01 at peak 1
+    assert tonemap_srgb(np.array([1.0]))[0] == pytest.approx(0.7353569, abs=1e-6)  # sRGB(0.5), Reinhard(1) = 0.5
+    same = image_metrics(ref + 0.3, ref + 0.3)
+    assert same["ssim_linear"] == pytest.approx(1.0) and same["ssim_srgb"] == pytest.approx(1.0)
+    assert same["flip_hdr"] == 0.0 and flip_hdr(ref + 0.3, ref + 0.6) > 0.0
+    with pytest.raises(ValueError, match="must be finite and >= 0"):
+        image_metrics(ref - 1.0, ref)
+    assert pareto_front([(1.0, 5.0), (2.0, 3.0), (3.0, 4.0), (10.0, 1.0)]) == [0, 1, 3]
+
+
+def test_report_files_and_identity_row(tiny_dataset, busy_onnx, tmp_path):
+    rc = main(["--data", str(tiny_dataset), "--models", str(busy_onnx), "--baselines", "identity,gaussian,gather",
+               "--out", str(tmp_path / "report"), "--repeats", "1", "--threads", "1", "--samples", "2"])
+    assert rc == 0
+    for name in ("report.json", "report.md", "error_vs_runtime.png", "grid_median.png", "grid_worst.png"):
+        assert (tmp_path / "report" / name).is_file(), name
+    report = json.loads((tmp_path / "report" / "report.json").read_text())
+    assert list(report["methods"]) == ["busy.onnx", "identity", "gaussian", "gather"]
+    from neuralbokeh.data import FocalStackDataset
+
+    ds = FocalStackDataset(tiny_dataset, "test", 0.2, 0, normalize=False)
+    it = ds[0]
+    want = image_metrics(it["aif"].numpy().transpose(1, 2, 0).astype(np.float64),
+                         it["defocus"].numpy().transpose(1, 2, 0).astype(np.float64))
+    got = report["methods"]["identity"]["per_sample"][0]
+    assert got["psnr_srgb"] == pytest.approx(want["psnr_srgb"]) and got["flip_hdr"] == pytest.approx(want["flip_hdr"])
+    assert all(m["ms_per_mp"] > 0 for m in report["methods"].values())
+    assert "| gather |" in (tmp_path / "report" / "report.md").read_text()
+    with pytest.raises(SystemExit, match="unknown baselines"):
+        main(["--data", str(tiny_dataset), "--baselines", "bogus", "--out", str(tmp_path / "r2")])
