@@ -31,10 +31,9 @@ from neuralbokeh.apertures import ApertureModel, Gaussian
 from neuralbokeh.data import FocalStackDataset, Normalization
 from neuralbokeh.render import scatter_defocus
 from neuralbokeh.training import load_config, train
+from neuralbokeh.training.ablations import VARIANTS
 
 ROOT = Path(__file__).resolve().parents[1]
-VARIANTS = {"full": [], "no_tiling": ["model.tiling='none'"], "no_overlap": ["model.tiling='no_overlap'"],
-            "fixed3_kernels": ["model.kernels='fixed3'"], "tile_loss": ["train.loss='tile'"]}
 
 
 def baselines(cfg) -> dict[str, tuple[float, float]]:

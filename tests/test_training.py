@@ -203,3 +203,19 @@ def test_large_kernels_learn_at_lr_over_fan_in():
     assert set(scales) == {1.0, 1 / 9, 1 / 25, 1 / 49}  # 1x1 convs and biases at 1; k x k kernels at 1/k^2
     assert sum(scales.values()) == sum(p.numel() for p in model.parameters())
     assert [g["lr_scale"] for g in param_groups(model, "none")] == [1.0]
+
+
+def test_ablation_runner_writes_table_one(tiny_dataset, tmp_path):
+    from neuralbokeh.training.ablations import VARIANTS, main
+
+    cfg = _config(tmp_path / "cfg", tiny_dataset)
+    path = tmp_path / "cfg" / "cfg.toml"
+    assert cfg.train.steps == 4
+    rc = main([str(path), "train.steps=2", "--data", str(tiny_dataset), "--out", str(tmp_path / "abl"), "--minutes", "0",
+               "--samples", "2", "--threads", "1"])
+    assert rc == 0
+    rows = json.loads((tmp_path / "abl" / "table.json").read_text())
+    assert [r["variant"] for r in rows] == list(VARIANTS) and all(r["steps"] == 2 for r in rows)
+    table = (tmp_path / "abl" / "table.md").read_text()
+    assert "| 3x3 kernel size |" in table and "| Loss per tile |" in table
+    assert json.loads((tmp_path / "abl" / "no_tiling" / "summary.json").read_text())["model"]["tiling"] == "none"
