@@ -10,7 +10,7 @@ from neuralbokeh.apertures import ApertureModel, Polygon
 from neuralbokeh.evaluate import main
 from neuralbokeh.metrics import flip_hdr, image_metrics, pareto_front, tonemap_srgb
 from neuralbokeh.render import scatter_defocus
-from neuralbokeh.render.baselines import gather_defocus, gaussian_defocus
+from neuralbokeh.render.baselines import gather_defocus, gaussian_defocus, pseudo_ray_trace
 
 
 def _point(coc_px: float, size: int = 48):
@@ -52,6 +52,29 @@ def test_step_edge_at_a_depth_discontinuity():
     assert torch.allclose(gs[..., : size // 2 - 1], x[..., : size // 2 - 1], atol=1e-9)  # sharp foreground stays sharp
 
 
+def test_pseudo_ray_tracing_point_light_and_step_edge():
+    ap = ApertureModel(Polygon(7))
+    x, c = _point(9.0)
+    r = pseudo_ray_trace(x, c, ap)
+    assert float(r.sum()) == pytest.approx(float(x.sum()), rel=1e-12)  # every ray finds the point once
+    lit = (r[0, 0] - 0.1) > 1.0
+    s = scatter_defocus(x, c, ap)[0, 0] - 0.1
+    assert 0.7 * int((s > 1.0).sum()) <= int(lit.sum()) <= int((s > 1.0).sum())  # the heptagon, one ray per pixel
+    size = 48
+    x = torch.full((1, 3, size, size), 0.2, dtype=torch.float64)
+    x[..., : size // 2] = 5.0
+    c = torch.full((1, 1, size, size), 9.0, dtype=torch.float64)
+    c[..., : size // 2] = 0.0
+    r, g = pseudo_ray_trace(x, c, ap), gather_defocus(x, c, ap)
+    assert torch.equal(r[..., : size // 2], x[..., : size // 2])  # in focus: every ray hits the pixel itself
+    assert torch.allclose(r[..., size // 2 :], x[..., size // 2 :])  # depth-aware: no foreground leaks behind
+    assert float(g[0, 0, 20, size // 2 + 1]) > 1.0  # where the naive gather leaks
+    yang = pseudo_ray_trace(x, c, ap, blending="yang")
+    assert torch.isfinite(yang).all()
+    with pytest.raises(ValueError, match="blending must be"):
+        pseudo_ray_trace(x, c, ap, blending="gamma")
+
+
 def test_metrics_against_hand_values():
     ref = np.zeros((16, 20, 3))
     ref[0, 0, 0] = 1.0  # peak 1
@@ -67,13 +90,13 @@ def test_metrics_against_hand_values():
 
 
 def test_report_files_and_identity_row(tiny_dataset, busy_onnx, tmp_path):
-    rc = main(["--data", str(tiny_dataset), "--models", str(busy_onnx), "--baselines", "identity,gaussian,gather",
+    rc = main(["--data", str(tiny_dataset), "--models", str(busy_onnx), "--baselines", "identity,gaussian,gather,raytrace",
                "--out", str(tmp_path / "report"), "--repeats", "1", "--threads", "1", "--samples", "2"])
     assert rc == 0
     for name in ("report.json", "report.md", "error_vs_runtime.png", "grid_median.png", "grid_worst.png"):
         assert (tmp_path / "report" / name).is_file(), name
     report = json.loads((tmp_path / "report" / "report.json").read_text())
-    assert list(report["methods"]) == ["busy.onnx", "identity", "gaussian", "gather"]
+    assert list(report["methods"]) == ["busy.onnx", "identity", "gaussian", "gather", "raytrace"]
     from neuralbokeh.data import FocalStackDataset
 
     ds = FocalStackDataset(tiny_dataset, "test", 0.2, 0, normalize=False)
