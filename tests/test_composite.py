@@ -29,11 +29,6 @@ def test_gaussian_blur_matches_kornia(sigma):
     np.testing.assert_allclose(gaussian_blur(m, sigma), want.numpy(), atol=1e-6)
 
 
-@pytest.fixture
-def model_path(busy_onnx):
-    return busy_onnx
-
-
 def _inputs(m: BokehModel, seed=0):
     g = np.random.default_rng(seed)
     plate = (0.18 * np.exp2(g.uniform(-2, 2, (m.height, m.width, 3)))).astype(np.float32)
@@ -44,12 +39,12 @@ def _inputs(m: BokehModel, seed=0):
     return plate, render, depth, alpha
 
 
-def test_cli_composites_in_linear_light(model_path, tmp_path):
-    m = BokehModel(model_path, threads=1)
+def test_cli_composites_in_linear_light(busy_onnx, tmp_path):
+    m = BokehModel(busy_onnx, threads=1)
     plate, render, depth, alpha = _inputs(m)
     for name, img in (("plate", plate), ("render", render), ("depth", depth), ("alpha", alpha)):
         write_image(tmp_path / f"{name}.exr", img)
-    rc = main(["--model", str(model_path), "--plate", str(tmp_path / "plate.exr"), "--render", str(tmp_path / "render.exr"),
+    rc = main(["--model", str(busy_onnx), "--plate", str(tmp_path / "plate.exr"), "--render", str(tmp_path / "render.exr"),
                "--depth", str(tmp_path / "depth.exr"), "--alpha", str(tmp_path / "alpha.exr"), "--focus", "2.0",
                "--out", str(tmp_path / "comp.exr"), "--threads", "1"])
     assert rc == 0
@@ -63,8 +58,8 @@ def test_cli_composites_in_linear_light(model_path, tmp_path):
     assert np.all(edge <= np.maximum(plate[8, 15], blurred[8, 15]) + 1e-6)
 
 
-def test_cli_sequence_with_focus_pull_and_png(model_path, tmp_path):
-    m = BokehModel(model_path, threads=1)
+def test_cli_sequence_with_focus_pull_and_png(busy_onnx, tmp_path):
+    m = BokehModel(busy_onnx, threads=1)
     plate, render, depth, alpha = _inputs(m, seed=1)
     write_image(tmp_path / "plate.exr", plate)
     write_image(tmp_path / "depth.exr", depth)
@@ -72,7 +67,7 @@ def test_cli_sequence_with_focus_pull_and_png(model_path, tmp_path):
         write_image(tmp_path / f"render.{f:04d}.exr", render * f)
         write_image(tmp_path / f"alpha.{f:04d}.exr", alpha)
     (tmp_path / "focus.csv").write_text("frame,focus_m\n1,2.0\n3,2.6\n")
-    args = ["--model", str(model_path), "--plate", str(tmp_path / "plate.exr"), "--render", str(tmp_path / "render.%04d.exr"),
+    args = ["--model", str(busy_onnx), "--plate", str(tmp_path / "plate.exr"), "--render", str(tmp_path / "render.%04d.exr"),
             "--depth", str(tmp_path / "depth.exr"), "--alpha", str(tmp_path / "alpha.%04d.exr"),
             "--focus-curve", str(tmp_path / "focus.csv"), "--threads", "1"]
     assert main([*args, "--frames", "1-3", "--out", str(tmp_path / "out" / "comp.%04d.exr")]) == 0
@@ -82,11 +77,11 @@ def test_cli_sequence_with_focus_pull_and_png(model_path, tmp_path):
     with pytest.raises(SystemExit, match="outside the focus curve"):
         main([*args, "--frames", "1-4", "--out", str(tmp_path / "x.%04d.exr")])
     with pytest.raises(SystemExit, match="sequence pattern: give --frames"):
-        main(["--model", str(model_path), "--plate", str(tmp_path / "plate.exr"), "--render", str(tmp_path / "render.%04d.exr"),
+        main(["--model", str(busy_onnx), "--plate", str(tmp_path / "plate.exr"), "--render", str(tmp_path / "render.%04d.exr"),
               "--depth", str(tmp_path / "depth.exr"), "--alpha", str(tmp_path / "alpha.0001.exr"), "--focus", "2",
               "--out", str(tmp_path / "x.exr")])
     # PNG output: sRGB-encoded; values above 1 are an error unless clipping is asked for
-    png = ["--model", str(model_path), "--plate", str(tmp_path / "plate.exr"), "--render", str(tmp_path / "render.0003.exr"),
+    png = ["--model", str(busy_onnx), "--plate", str(tmp_path / "plate.exr"), "--render", str(tmp_path / "render.0003.exr"),
            "--depth", str(tmp_path / "depth.exr"), "--alpha", str(tmp_path / "alpha.0001.exr"), "--focus", "2", "--threads", "1"]
     with pytest.raises(SystemExit, match="cannot be stored in a PNG"):
         main([*png, "--out", str(tmp_path / "c.png")])
@@ -98,7 +93,7 @@ def test_cli_sequence_with_focus_pull_and_png(model_path, tmp_path):
     assert (back == 1.0).any() and back.min() < 0.9
 
 
-def test_demo_inputs_composite_end_to_end(model_path, tiny_dataset, tmp_path, capsys):
+def test_demo_inputs_composite_end_to_end(busy_onnx, tiny_dataset, tmp_path, capsys):
     from data_tools.demo_composite import main as demo
 
     scene = sorted(tiny_dataset.glob("scene_*"))[0]
@@ -110,6 +105,6 @@ def test_demo_inputs_composite_end_to_end(model_path, tiny_dataset, tmp_path, ca
     alpha = read_image(tmp_path / "demo" / "alpha.exr")[..., 0]
     depth = read_image(tmp_path / "demo" / "depth.exr")[..., 0]
     assert 0 < alpha.mean() < 1 and np.isinf(depth[alpha == 0]).all() and np.isfinite(depth[alpha > 0]).all()
-    assert main(["--model", str(model_path), *args, "--threads", "1", "--clamp-coc"]) == 0
+    assert main(["--model", str(busy_onnx), *args, "--threads", "1", "--clamp-coc"]) == 0
     comp, plate = read_image(tmp_path / "demo" / "comp.exr"), read_image(tmp_path / "demo" / "plate.exr")
     assert np.isfinite(comp).all() and not np.array_equal(comp, plate)

@@ -16,11 +16,6 @@ from neuralbokeh.training import load_model
 ROOT = Path(__file__).resolve().parents[1]
 
 
-@pytest.fixture
-def exported(busy_onnx):
-    return busy_onnx
-
-
 def _scene(model: BokehModel, seed=0):
     g = np.random.default_rng(seed)
     aif = (0.18 * np.exp2(g.uniform(-3, 3, (model.height, model.width, 3)))).astype(np.float32)
@@ -35,8 +30,8 @@ def _torch_render(checkpoint, aif, coc_px):
         return model(torch.from_numpy(x[None]).float())[0].numpy()
 
 
-def test_render_matches_pytorch_through_lens_and_normalisation(exported, busy_checkpoint):
-    m = BokehModel(exported, threads=1, skip_in_focus=False)
+def test_render_matches_pytorch_through_lens_and_normalisation(busy_onnx, busy_checkpoint):
+    m = BokehModel(busy_onnx, threads=1, skip_in_focus=False)
     aif = _scene(m)
     depth = np.linspace(1.7, 2.5, m.height * m.width).reshape(m.height, m.width)
     focus = 2.0
@@ -53,8 +48,8 @@ def test_render_matches_pytorch_through_lens_and_normalisation(exported, busy_ch
     assert m.lens.to_dict() == load_model(busy_checkpoint)[1]["lens"]
 
 
-def test_runtime_errors_name_the_value(exported):
-    m = BokehModel(exported, threads=1)
+def test_runtime_errors_name_the_value(busy_onnx):
+    m = BokehModel(busy_onnx, threads=1)
     aif = _scene(m)
     depth = np.full((m.height, m.width), 3.0)
     with pytest.raises(ValueError, match=rf"aif must have shape \({m.height}, {m.width}, 3\)"):
@@ -75,11 +70,11 @@ def test_runtime_errors_name_the_value(exported):
     with pytest.raises(ValueError, match="exceeds the model's trained maximum"):
         m.render_coc(aif, np.full(depth.shape, m.max_coc_px * 1.5))
     with pytest.raises(FileNotFoundError):
-        BokehModel(exported.parent / "missing.onnx")
+        BokehModel(busy_onnx.parent / "missing.onnx")
 
 
-def test_clamping_the_coc_is_explicit_and_warns(exported):
-    m = BokehModel(exported, threads=1)
+def test_clamping_the_coc_is_explicit_and_warns(busy_onnx):
+    m = BokehModel(busy_onnx, threads=1)
     aif = _scene(m)
     coc = np.full((m.height, m.width), m.max_coc_px * 2.0)
     with pytest.warns(UserWarning, match="clamped"):
@@ -89,16 +84,16 @@ def test_clamping_the_coc_is_explicit_and_warns(exported):
         np.testing.assert_array_equal(out, m.render_coc(aif, np.full_like(coc, m.max_coc_px)))
 
 
-def test_depth_at_infinity_renders_finite(exported):
-    m = BokehModel(exported, threads=1)
+def test_depth_at_infinity_renders_finite(busy_onnx):
+    m = BokehModel(busy_onnx, threads=1)
     focus = next(f for f in np.geomspace(0.2, 1e3, 200) if abs(m.coc_px(np.inf, f)) <= m.max_coc_px)
     out = m.render(_scene(m), np.full((m.height, m.width), np.inf), focus)
     assert np.isfinite(out).all()
 
 
-def test_in_focus_tiles_are_skipped_and_defocused_ones_unchanged(exported):
-    m_full = BokehModel(exported, threads=1, skip_in_focus=False)
-    m_skip = BokehModel(exported, threads=1)
+def test_in_focus_tiles_are_skipped_and_defocused_ones_unchanged(busy_onnx):
+    m_full = BokehModel(busy_onnx, threads=1, skip_in_focus=False)
+    m_skip = BokehModel(busy_onnx, threads=1)
     rows, cols, t, t_o = m_skip.layout
     assert (rows, cols) == (2, 3) and m_skip.width == 40
     aif = _scene(m_skip, seed=3)
@@ -115,9 +110,9 @@ def test_in_focus_tiles_are_skipped_and_defocused_ones_unchanged(exported):
     np.testing.assert_allclose(everything_sharp, aif, rtol=2e-6)
 
 
-def test_runtime_imports_no_torch(exported):
+def test_runtime_imports_no_torch(busy_onnx):
     code = ("import sys, numpy as np; from neuralbokeh.runtime import BokehModel; "
-            f"m = BokehModel(r'{exported}', threads=1); "
+            f"m = BokehModel(r'{busy_onnx}', threads=1); "
             "m.render_coc(np.full((m.height, m.width, 3), 0.2, np.float32), np.zeros((m.height, m.width))); "
             "assert 'torch' not in sys.modules, 'torch was imported'")
     subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)

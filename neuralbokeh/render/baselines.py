@@ -27,6 +27,16 @@ from .fftconv import fft_convolve2d
 from .scatter import scatter_defocus
 
 
+def _check_inputs(aif: torch.Tensor, coc: torch.Tensor, coc_step: float) -> dict[str, int]:
+    """The shared checks of the baselines: ``(B, 3, H, W)`` colour >= 0, ``(B, 1, H, W)`` finite CoC."""
+    d = check_shape("aif", aif, "B 3 H W")
+    check_shape("coc", coc, "B 1 H W", B=d["B"], H=d["H"], W=d["W"])
+    check_nonnegative("aif", aif)
+    check_finite("coc", coc, " px")
+    check_positive("coc_step", coc_step, " px")
+    return d
+
+
 def gaussian_defocus(aif: torch.Tensor, coc: torch.Tensor) -> torch.Tensor:
     """``(B, 3, H, W)`` linear RGB, ``(B, 1, H, W)`` signed CoC (px) -> Gaussian-blurred RGB."""
     return scatter_defocus(aif, coc, ApertureModel(Gaussian(0.5)))
@@ -51,11 +61,7 @@ def gather_defocus(aif: torch.Tensor, coc: torch.Tensor, aperture: ApertureModel
     Returns:
         ``(B, 3, H, W)`` linear RGB (float64).
     """
-    d = check_shape("aif", aif, "B 3 H W")
-    check_shape("coc", coc, "B 1 H W", B=d["B"], H=d["H"], W=d["W"])
-    check_nonnegative("aif", aif)
-    check_finite("coc", coc, " px")
-    check_positive("coc_step", coc_step, " px")
+    d = _check_inputs(aif, coc, coc_step)
     aperture = aperture or ApertureModel()
     x, c = aif.double(), coc.double() / coc_step
     lo = int(torch.floor(c.min()))
@@ -117,11 +123,7 @@ def pseudo_ray_trace(aif: torch.Tensor, coc: torch.Tensor, aperture: ApertureMod
     Returns:
         ``(B, 3, H, W)`` linear RGB (float64).
     """
-    d = check_shape("aif", aif, "B 3 H W")
-    check_shape("coc", coc, "B 1 H W", B=d["B"], H=d["H"], W=d["W"])
-    check_nonnegative("aif", aif)
-    check_finite("coc", coc, " px")
-    check_positive("coc_step", coc_step, " px")
+    d = _check_inputs(aif, coc, coc_step)
     check_positive("sigma", sigma)
     if blending not in ("radiance", "yang"):
         raise ValueError(f"blending must be 'radiance' or 'yang', got {blending!r}")
