@@ -5,8 +5,11 @@
 Methods: trained models (``.onnx`` through ``neuralbokeh.runtime``, ``.pt`` checkpoints through
 PyTorch) and the baselines of ``neuralbokeh.render.baselines``: ``identity`` (the AIF returned),
 ``gaussian`` (CoC-driven Gaussian), ``gather`` (naive gather with the data's aperture),
-``raytrace`` (Yang et al.'s depth-aware pseudo ray tracing with the data's aperture, 8x8 rays) and
-``scatter`` (the reference renderer with the data's aperture: with synthetic data made by the
+``raytrace`` (Yang et al.'s depth-aware pseudo ray tracing with the data's aperture, 8x8 rays),
+``buckets`` (the light-field patent's near/mid/far gather with sum-to-saturation), ``pyramid`` and
+``tensor`` (Kosloff and Barsky's Gaussian pyramid spreading and tensor filter), ``lenstrace``
+(Lee, Eisemann and Seidel's layered image-space ray tracing; no spherical aberration, since the
+data has none) and ``scatter`` (the reference renderer with the data's aperture: with synthetic data made by the
 same renderer this is an oracle, the best any method fed AIF + CoC can do).
 
 Per method and held-out sample: the metrics of ``neuralbokeh.metrics`` (PSNR/SSIM in linear
@@ -38,9 +41,12 @@ from .metrics import image_metrics, pareto_front, tonemap_srgb
 from .normalization import Normalization
 from .render import scatter_defocus
 from .render.baselines import gather_defocus, gaussian_defocus, pseudo_ray_trace
+from .render.buckets import bucket_gather
+from .render.lens_trace import lens_ray_trace
+from .render.pyramid import pyramid_spread, tensor_filter
 
 log = logging.getLogger(__name__)
-BASELINES = ("identity", "gaussian", "gather", "raytrace", "scatter")
+BASELINES = ("identity", "gaussian", "gather", "raytrace", "buckets", "pyramid", "tensor", "lenstrace", "scatter")
 Method = Callable[[np.ndarray, np.ndarray], np.ndarray]  # (aif (H, W, 3), coc px (H, W)) -> (H, W, 3)
 
 
@@ -53,7 +59,7 @@ def _torch_method(fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]) -> M
 
 
 def baseline_methods(names: list[str], aperture: ApertureModel | None) -> dict[str, Method]:
-    """The named baselines; ``gather``/``scatter`` use ``aperture`` (a disk when unknown)."""
+    """The named baselines; those with an aperture shape use ``aperture`` (a disk when unknown)."""
     ap = aperture or ApertureModel()
     table: dict[str, Method] = {
         "identity": lambda aif, coc: aif.copy(),
@@ -62,6 +68,10 @@ def baseline_methods(names: list[str], aperture: ApertureModel | None) -> dict[s
         # 8x8 rays (~50 in a 7-gon) and 1 px CoC steps: the paper's one ray per mask pixel costs
         # minutes per image at 256 px and max CoC 28 on 2 cores
         "raytrace": _torch_method(lambda x, c: pseudo_ray_trace(x, c, ap, grid=8, coc_step=1.0)),
+        "buckets": _torch_method(lambda x, c: bucket_gather(x, c, ap)),
+        "pyramid": _torch_method(pyramid_spread),
+        "tensor": _torch_method(tensor_filter),
+        "lenstrace": _torch_method(lambda x, c: lens_ray_trace(x, c, ap, grid=8, steps=16)),
         "scatter": _torch_method(lambda x, c: scatter_defocus(x, c, ap)),
     }
     unknown = [n for n in names if n not in table]

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from neuralbokeh.apertures import ApertureModel, Polygon
-from neuralbokeh.evaluate import main
+from neuralbokeh.evaluate import BASELINES, main
 from neuralbokeh.metrics import flip_hdr, image_metrics, pareto_front, tonemap_srgb
 from neuralbokeh.render import scatter_defocus
 from neuralbokeh.render.baselines import gather_defocus, gaussian_defocus, pseudo_ray_trace
@@ -90,13 +90,13 @@ def test_metrics_against_hand_values():
 
 
 def test_report_files_and_identity_row(tiny_dataset, busy_onnx, tmp_path):
-    rc = main(["--data", str(tiny_dataset), "--models", str(busy_onnx), "--baselines", "identity,gaussian,gather,raytrace",
+    rc = main(["--data", str(tiny_dataset), "--models", str(busy_onnx), "--baselines", "all",
                "--out", str(tmp_path / "report"), "--repeats", "1", "--threads", "1", "--samples", "2"])
     assert rc == 0
     for name in ("report.json", "report.md", "error_vs_runtime.png", "grid_median.png", "grid_worst.png"):
         assert (tmp_path / "report" / name).is_file(), name
     report = json.loads((tmp_path / "report" / "report.json").read_text())
-    assert list(report["methods"]) == ["busy.onnx", "identity", "gaussian", "gather", "raytrace"]
+    assert list(report["methods"]) == ["busy.onnx", *BASELINES]
     from neuralbokeh.data import FocalStackDataset
 
     ds = FocalStackDataset(tiny_dataset, "test", 0.2, 0, normalize=False)

@@ -11,6 +11,10 @@
   background and a blurred foreground does not spread over a sharp background.
 * :func:`pseudo_ray_trace`: Yang et al.'s depth-aware pseudo ray tracing with their weighted
   colour blending as an option (``../shared/papers/virtual-dslr-yang.txt``).
+* in their own modules: :func:`neuralbokeh.render.buckets.bucket_gather` (the light-field
+  patent's near/mid/far buckets), :func:`neuralbokeh.render.pyramid.pyramid_spread` and
+  :func:`neuralbokeh.render.pyramid.tensor_filter` (Kosloff and Barsky),
+  :func:`neuralbokeh.render.lens_trace.lens_ray_trace` (Lee, Eisemann and Seidel).
 * :func:`neuralbokeh.render.scatter_defocus` with the true aperture: the reference (the
   foundation's renderer); the evaluation calls it the oracle when the aperture is the data's.
 """
