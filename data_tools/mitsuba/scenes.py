@@ -1,0 +1,177 @@
+"""Scenes for the Mitsuba renderer: a procedural generator and user XML files.
+
+World units are metres. The procedural camera sits at the origin looking along +z with +y up,
+so a point's planar depth is its z. Everything is built as plain ``mi.load_dict`` dictionaries
+plus numpy textures; ``mi`` is the module returned by :func:`data_tools.mitsuba.variant.activate`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+import numpy as np
+
+from neuralbokeh.checks import check_positive
+
+
+@dataclass(frozen=True)
+class Camera:
+    """A pinhole camera: pose, horizontal field of view and film size.
+
+    Attributes:
+        to_world: 4x4 camera-to-world matrix (Mitsuba camera space: +z forward, +y up, image
+            right is -x).
+        fov_x_deg: horizontal field of view in degrees, in (0, 180).
+        width, height: film size in px.
+    """
+
+    to_world: np.ndarray
+    fov_x_deg: float
+    width: int
+    height: int
+
+    @property
+    def tan_half_x(self) -> float:
+        return math.tan(math.radians(self.fov_x_deg) / 2.0)
+
+
+def fov_for_lens(focal_length_mm: float, sensor_width_mm: float) -> float:
+    """Horizontal field of view (degrees) of a lens focused at infinity on a sensor of that width."""
+    check_positive("focal_length_mm", focal_length_mm, " mm")
+    check_positive("sensor_width_mm", sensor_width_mm, " mm")
+    return math.degrees(2.0 * math.atan(sensor_width_mm / (2.0 * focal_length_mm)))
+
+
+@dataclass(frozen=True)
+class SceneParams:
+    """Ranges of the procedural scenes (depths in m)."""
+
+    near_m: float = 0.7
+    far_m: float = 12.0
+    rectangles: tuple[int, int] = (2, 5)
+    spheres: tuple[int, int] = (1, 4)
+    boxes: tuple[int, int] = (1, 3)
+    highlights: tuple[int, int] = (2, 6)
+    highlight_radiance: tuple[float, float] = (30.0, 3000.0)
+
+
+def _texture(rng: np.random.Generator, size: int = 64) -> np.ndarray:
+    """A random RGB texture (stripes, checks or blobs on a base colour), float32 in [0.02, 0.9]."""
+    y, x = np.mgrid[:size, :size] / size
+    base, other = rng.uniform(0.05, 0.9, 3), rng.uniform(0.05, 0.9, 3)
+    kind = rng.integers(3)
+    if kind == 0:
+        f, a = rng.uniform(2, 10), rng.uniform(0, np.pi)
+        m = (np.sin(2 * np.pi * f * (x * np.cos(a) + y * np.sin(a))) > 0).astype(float)
+    elif kind == 1:
+        n = rng.integers(2, 9)
+        m = ((np.floor(x * n) + np.floor(y * n)) % 2).astype(float)
+    else:
+        m = np.zeros_like(x)
+        for _ in range(rng.integers(3, 9)):
+            cx, cy, r = rng.uniform(0, 1), rng.uniform(0, 1), rng.uniform(0.05, 0.25)
+            m = np.maximum(m, ((x - cx) ** 2 + (y - cy) ** 2 < r * r).astype(float))
+    tex = base[None, None] * (1 - m[..., None]) + other[None, None] * m[..., None]
+    return np.clip(tex, 0.02, 0.9).astype(np.float32)
+
+
+def _in_view(rng: np.random.Generator, camera: Camera, depth: float, margin: float = 0.9) -> tuple[float, float]:
+    """A random (x, y) at planar depth ``depth`` inside the procedural camera's view."""
+    tx = camera.tan_half_x * margin
+    ty = tx * camera.height / camera.width
+    return float(rng.uniform(-tx, tx) * depth), float(rng.uniform(-ty, ty) * depth)
+
+
+def procedural_scene(mi: ModuleType, rng: np.random.Generator, camera: Camera, params: SceneParams,
+                     max_depth: int = 4, planar: bool = False) -> tuple[dict[str, Any], dict[str, Any]]:
+    """A random scene: textured rectangles (some tilted), spheres and boxes spread over depth
+    (log-uniform), small emissive spheres as HDR highlights, a textured back wall at the far
+    depth and a constant environment. Deterministic for a given ``rng`` state. ``planar``: only
+    fronto-parallel rectangles (and the point-like highlights), the layered model's own world.
+
+    Returns:
+        ``(scene dict without sensor, description)``: the description (JSON) lists the objects.
+    """
+    T = mi.ScalarTransform4f
+    check_positive("near_m", params.near_m, " m")
+    if not params.near_m < params.far_m:
+        raise ValueError(f"need near_m < far_m, got {params.near_m} and {params.far_m}")
+    log_near, log_far = math.log(params.near_m), math.log(params.far_m)
+
+    def depth() -> float:
+        return float(math.exp(rng.uniform(log_near, log_far * 0.98 + log_near * 0.02)))
+
+    def textured() -> dict[str, Any]:
+        return {"type": "diffuse", "reflectance": {"type": "bitmap", "bitmap": mi.Bitmap(_texture(rng)), "raw": True}}
+
+    # rectangles face -z after the 180 degree turn: diffuse surfaces are one-sided
+    scene: dict[str, Any] = {"type": "scene", "integrator": {"type": "path", "max_depth": max_depth},
+                             "environment": {"type": "constant", "radiance": {"type": "rgb", "value": float(rng.uniform(0.5, 1.5))}}}
+    desc: list[dict[str, Any]] = []
+    wall = params.far_m
+    half = camera.tan_half_x * wall * 1.2
+    scene["wall"] = {"type": "rectangle", "to_world": T().translate([0.0, 0.0, wall]).rotate([0, 1, 0], 180.0).scale([half, half, 1.0]),
+                     "bsdf": textured()}
+    desc.append({"kind": "wall", "depth_m": wall})
+    for i in range(int(rng.integers(*params.rectangles, endpoint=True))):
+        z = depth()
+        x, y = _in_view(rng, camera, z)
+        size = z * camera.tan_half_x * rng.uniform(0.15, 0.5)
+        tilt = rng.uniform(-50, 50) if rng.uniform() < 0.5 and not planar else 0.0
+        scene[f"rect{i}"] = {"type": "rectangle", "bsdf": textured(),
+                             "to_world": T().translate([x, y, z]).rotate([0, 1, 0], 180.0 + tilt).scale([size, size, 1.0])}
+        desc.append({"kind": "rectangle", "depth_m": z, "tilt_deg": tilt})
+    for i in range(0 if planar else int(rng.integers(*params.spheres, endpoint=True))):
+        z = depth()
+        x, y = _in_view(rng, camera, z)
+        r = z * camera.tan_half_x * rng.uniform(0.05, 0.2)
+        scene[f"sphere{i}"] = {"type": "sphere", "center": [x, y, z + r], "radius": r, "bsdf": textured()}
+        desc.append({"kind": "sphere", "depth_m": z})
+    for i in range(0 if planar else int(rng.integers(*params.boxes, endpoint=True))):
+        z = depth()
+        x, y = _in_view(rng, camera, z)
+        s = z * camera.tan_half_x * rng.uniform(0.05, 0.2)
+        scene[f"box{i}"] = {"type": "cube", "bsdf": textured(),
+                            "to_world": T().translate([x, y, z + s]).rotate([0, 1, 0], rng.uniform(0, 90)).scale(s)}
+        desc.append({"kind": "box", "depth_m": z})
+    for i in range(int(rng.integers(*params.highlights, endpoint=True))):
+        z = depth()
+        # a point light on a pixel centre, 0.9 px across: the depth sample at that centre sees it
+        # and no neighbour's does, so the AIF + depth describe it consistently
+        col, row = int(rng.integers(camera.width)), int(rng.integers(camera.height))
+        tx = ((col + 0.5) / camera.width * 2.0 - 1.0) * camera.tan_half_x
+        ty = ((row + 0.5) / camera.height * 2.0 - 1.0) * camera.tan_half_x * camera.height / camera.width
+        x, y = -tx * z, -ty * z  # image right is world -x, image down is world -y
+        r = z * camera.tan_half_x * 2.0 / camera.width * 0.45
+        radiance = float(math.exp(rng.uniform(*np.log(params.highlight_radiance))))
+        colour = rng.uniform(0.6, 1.0, 3) * radiance
+        scene[f"light{i}"] = {"type": "sphere", "center": [x, y, z], "radius": r,
+                              "emitter": {"type": "area", "radiance": {"type": "rgb", "value": colour.tolist()}}}
+        desc.append({"kind": "highlight", "depth_m": z, "radiance": radiance})
+    return scene, {"objects": desc}
+
+
+def camera_from_xml(mi: ModuleType, path: Path, params: dict[str, str] | None = None) -> tuple[Any, Camera]:
+    """Load a user's Mitsuba scene (``params``: values of its ``$name`` parameters) and its
+    first sensor's pinhole camera.
+
+    Raises:
+        ValueError: the file has no perspective-like sensor, or one with a principal-point offset.
+    """
+    scene = mi.load_file(str(path), **(params or {}))
+    if not scene.sensors():
+        raise ValueError(f"{path}: the scene has no sensor; give the camera with the lens options")
+    sensor = scene.sensors()[0]
+    params = mi.traverse(sensor)
+    if "x_fov" not in params:
+        raise ValueError(f"{path}: sensor {sensor.class_().name()} has no field of view; need a perspective or thinlens sensor")
+    for key in ("principal_point_offset_x", "principal_point_offset_y"):
+        if key in params and abs(float(params[key])) > 1e-9:
+            raise ValueError(f"{path}: {key} = {float(params[key])}; only centred cameras are supported")
+    size = sensor.film().size()
+    matrix = np.array(sensor.world_transform().matrix, dtype=np.float64).reshape(4, 4)
+    return scene, Camera(matrix, float(np.asarray(params["x_fov"]).reshape(-1)[0]), int(size[0]), int(size[1]))
