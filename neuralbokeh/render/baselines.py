@@ -91,7 +91,7 @@ def _aperture_samples(aperture: ApertureModel, n: int) -> np.ndarray:
     grid = (np.arange(n) + 0.5) / n * 2.0 - 1.0
     u, v = np.meshgrid(grid, grid)
     keep = (u**2 + v**2 <= 1.0) & (aperture.shape.transmission(u, v) > 0.5)
-    pts = np.stack([u[keep], v[keep]], axis=1)
+    pts = np.stack([u[keep], -v[keep]], axis=1)  # the shape's v is up, image rows go down
     if len(pts) == 0:
         raise ValueError(f"the aperture {aperture.shape} has no sample point on a {n}x{n} grid")
     return pts
