@@ -38,7 +38,6 @@ pixel centre and a box filter, converts to planar depth ``z = aov / r + near_cli
 
 from __future__ import annotations
 
-import logging
 import math
 from dataclasses import dataclass
 from types import ModuleType
@@ -52,14 +51,13 @@ from neuralbokeh.optics import ThinLens
 
 from .scenes import Camera
 
-log = logging.getLogger(__name__)
-NEAR_CLIP_M = 0.01
+NEAR_CLIP = 0.01  # scene units
 METHODS = ("auto", "thinlens", "accumulate")
 
 
 def _sensor(camera: Camera, spp: int, kind: str = "perspective", jitter: bool = True, **extra: Any) -> dict[str, Any]:
     sampler = {"type": "independent", "sample_count": spp} if jitter else {"type": "stratified", "sample_count": 1, "jitter": False}
-    return {"type": kind, "fov": camera.fov_x_deg, "fov_axis": "x", "near_clip": NEAR_CLIP_M, "far_clip": 1e5,
+    return {"type": kind, "fov": camera.fov_x_deg, "fov_axis": "x", "near_clip": NEAR_CLIP, "far_clip": 1e5,
             "to_world": camera.to_world, "sampler": sampler, **extra,
             "film": {"type": "hdrfilm", "width": camera.width, "height": camera.height, "rfilter": {"type": "box"},
                      "pixel_format": "rgb", "component_format": "float32"}}
@@ -78,8 +76,7 @@ def _numpy(img: Any) -> np.ndarray:
 def render_aif(mi: ModuleType, scene: Any, camera: Camera, spp: int, seed: int = 0) -> np.ndarray:
     """The all-in-focus (pinhole) image, ``(H, W, 3)`` linear RGB float64, box pixel filter."""
     check_at_least("spp", spp, 1)
-    img = _numpy(mi.render(scene, sensor=_load_sensor(mi, _sensor(camera, spp)), spp=spp, seed=seed))[..., :3]
-    return np.maximum(img, 0.0)
+    return _numpy(mi.render(scene, sensor=_load_sensor(mi, _sensor(camera, spp)), spp=spp, seed=seed))[..., :3]
 
 
 def tangent_grid(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
@@ -91,11 +88,12 @@ def tangent_grid(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
     return np.broadcast_to(x[None], (camera.height, camera.width)), np.broadcast_to(y[:, None], (camera.height, camera.width))
 
 
-def planar_depth_from_aov(aov: np.ndarray, camera: Camera, near_clip_m: float = NEAR_CLIP_M) -> np.ndarray:
-    """Mitsuba's ``depth`` AOV at pixel centres -> planar depth along the axis in m (misses: +inf)."""
+def planar_depth_from_aov(aov: np.ndarray, camera: Camera, near_clip: float = NEAR_CLIP) -> np.ndarray:
+    """Mitsuba's ``depth`` AOV at pixel centres -> planar depth along the axis, in scene units
+    like the AOV and ``near_clip`` (misses: +inf)."""
     x, y = tangent_grid(camera)
     r = np.sqrt(1.0 + x**2 + y**2)
-    return np.where(aov > 0.0, aov / r + near_clip_m, np.inf)
+    return np.where(aov > 0.0, aov / r + near_clip, np.inf)
 
 
 def render_depth(mi: ModuleType, scene: Any, camera: Camera) -> np.ndarray:
@@ -115,8 +113,7 @@ def lens_radius_m(lens: ThinLens, focus_m: float, camera: Camera) -> float:
 def lens_points(aperture: ApertureModel, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """Points of the unit pupil on a jittered ``n x n`` grid where the shape transmits:
     ``(M, 2)`` as (u right, v up) and their transmissions ``(M,)``."""
-    g = (np.arange(n)[None, :] + rng.uniform(size=(n, n))) / n * 2.0 - 1.0
-    u = g
+    u = (np.arange(n)[None, :] + rng.uniform(size=(n, n))) / n * 2.0 - 1.0
     v = (np.arange(n)[:, None] + rng.uniform(size=(n, n))) / n * 2.0 - 1.0
     t = aperture.shape.transmission(u, v) * (u**2 + v**2 <= 1.0)
     keep = t > 0
@@ -240,8 +237,10 @@ def render_defocus(mi: ModuleType, scene: Any, camera: Camera, lens: ThinLens, a
         sensor = _load_sensor(mi, _sensor(camera, 1))
         params = mi.traverse(sensor)
         table = clip_fraction_table(aperture)
-        inner = scene.integrator() or mi.load_dict({"type": "path"})
-        with_depth = mi.load_dict({"type": "aov", "aovs": "z:depth", "integrator": inner})
+        vignetted = aperture.cat_eye > 0.0 or aperture.vignetting_radius < 1.0
+        integrator = scene.integrator() or mi.load_dict({"type": "path"})
+        if vignetted:  # each ray's depth too: the vignetting follows its scene point
+            integrator = mi.load_dict({"type": "aov", "aovs": "z:depth", "integrator": integrator})
     for r in range(rounds):
         if method == "thinlens":
             img = _numpy(mi.render(scene, sensor=sensor, spp=per_round, seed=_seed(seed, r)))[..., :3]
@@ -254,7 +253,6 @@ def render_defocus(mi: ModuleType, scene: Any, camera: Camera, lens: ThinLens, a
                 pts, trans = np.concatenate([pts, more]), np.concatenate([trans, t_more])
             pick = rng.permutation(len(pts))[:per_round]
             pts, trans = pts[pick], trans[pick]
-            vignetted = aperture.cat_eye > 0.0 or aperture.vignetting_radius < 1.0
             acc, w = np.zeros_like(total), np.zeros_like(weight)
             for i, ((u, v), t) in enumerate(zip(pts, trans)):
                 x_cam, y_cam = float(-u * radius), float(v * radius)
@@ -262,7 +260,7 @@ def render_defocus(mi: ModuleType, scene: Any, camera: Camera, lens: ThinLens, a
                 params["principal_point_offset_x"] = x_cam / (focus * 2.0 * camera.tan_half_x)
                 params["principal_point_offset_y"] = y_cam / (focus * 2.0 * camera.tan_half_x * camera.height / camera.width)
                 params.update()
-                out = _numpy(mi.render(scene, sensor=sensor, integrator=with_depth, spp=1, seed=_seed(seed, r, i)))
+                out = _numpy(mi.render(scene, sensor=sensor, integrator=integrator, spp=1, seed=_seed(seed, r, i)))
                 pw = t * np.ones_like(weight)
                 if vignetted:
                     z = planar_depth_from_aov(out[..., -1], camera) * unit_m
@@ -277,7 +275,7 @@ def render_defocus(mi: ModuleType, scene: Any, camera: Camera, lens: ThinLens, a
         noise = _noise(images)
         if noise_target is not None and noise < noise_target:
             break
-    image = np.maximum(total / weight, 0.0)
+    image = total / weight
     return SliceResult(image, spent, _noise(images), len(images), method)
 
 
