@@ -91,19 +91,20 @@ def test_disk_accumulation_matches_the_thinlens_sensor(mi):
 
 
 @pytest.mark.parametrize("method", ["thinlens", "accumulate"])
-def test_emissive_point_blur_diameter_matches_coc(mi, method):
+@pytest.mark.parametrize("depth, focus", [(2.0, 0.4), (0.3, 1.5)])  # behind, in front of the focus
+def test_emissive_point_blur_diameter_matches_coc(mi, method, depth, focus):
     cam = _camera(mi, 64, 64)
     lens = ThinLens(50.0, 1.2, 36.0)
-    focus, depth = 0.4, 2.0
     want = lens.coc_px(depth, focus, cam.width)
     assert want > 8.0
     res = render_defocus(mi, _point_scene(mi, cam, depth), cam, lens, ApertureModel(Disk()), focus, 1024, method)
     img = res.image[..., 1]
     yy, xx = np.mgrid[:64, :64]
-    cy, cx = (img * yy).sum() / img.sum(), (img * xx).sum() / img.sum()
-    rad = np.hypot(yy - cy, xx - cx)
-    plateau = img[rad < 0.3 * want].mean()
-    diameter = 2.0 * math.sqrt(img.sum() / plateau / math.pi)  # equivalent disk of the measured flux
+    m = img.sum()
+    cy, cx = (img * yy).sum() / m, (img * xx).sum() / m
+    r2 = (((yy - cy) ** 2 + (xx - cx) ** 2) * img).sum() / m
+    # a uniform disk of diameter d has E[r^2] = d^2 / 8; pixel integration adds 1/12 per axis
+    diameter = 2.0 * math.sqrt(2.0 * (r2 - 1.0 / 6.0))
     assert abs(diameter - want) < 1.0, (diameter, want)
     assert abs(cy - 31.5) < 0.5 and abs(cx - 31.5) < 0.5  # registered: the blur is centred on the pinhole image
 
