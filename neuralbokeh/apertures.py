@@ -407,6 +407,23 @@ class ApertureModel:
         """True when the channels have different kernels."""
         return len(set(self.channel_scale)) > 1
 
+    @property
+    def vignetted(self) -> bool:
+        """True when the vignetting circle clips the aperture somewhere."""
+        return self.cat_eye > 0.0 or self.vignetting_radius < 1.0
+
+    def vignetting_center(self, fx: Any, fy: Any) -> tuple[Any, Any]:
+        """Centre ``(u, v)`` (aperture radii; u right, v up) of the vignetting circle at field
+        position ``(fx, fy)`` (:func:`field_position`; x right, y down): it moves towards the
+        image centre by ``cat_eye`` per unit of field. Scalars or arrays."""
+        return -self.cat_eye * fx, self.cat_eye * fy
+
+    def transmits(self, u: Any, v: Any, fx: Any, fy: Any) -> Any:
+        """Whether pupil point ``(u, v)`` lies inside the vignetting circle at field ``(fx, fy)``
+        (the shape itself is not tested); broadcasts over arrays."""
+        cu, cv = self.vignetting_center(fx, fy)
+        return (u - cu) ** 2 + (v - cv) ** 2 <= self.vignetting_radius**2
+
     def kernel_radius_px(self, diameter_px: float) -> int:
         """Half-width of the (common) kernel for all channels at this CoC diameter."""
         return kernel_radius_px(diameter_px * max(self.channel_scale))
@@ -431,9 +448,8 @@ class ApertureModel:
         """
         fields = np.asarray(fields_xy, dtype=np.float64).reshape(-1, 2)
         centers = None
-        if self.cat_eye > 0.0 or self.vignetting_radius < 1.0:
-            # the vignetting circle moves towards the image centre; v is up, y is down
-            centers = np.stack([-self.cat_eye * fields[:, 0], self.cat_eye * fields[:, 1]], axis=1)
+        if self.vignetted:
+            centers = np.stack(self.vignetting_center(fields[:, 0], fields[:, 1]), axis=1)
         h = self.kernel_radius_px(diameter_px)
         out = np.zeros((len(fields), 3, 2 * h + 1, 2 * h + 1))
         done: dict[float, np.ndarray] = {}
@@ -466,7 +482,8 @@ class ApertureModel:
         )
 
 
-def field_position(row: float, col: float, height: int, width: int) -> tuple[float, float]:
-    """Normalised field position of pixel ``(row, col)``: centre 0, corners at distance 1."""
+def field_position(row: Any, col: Any, height: int, width: int) -> tuple[Any, Any]:
+    """Normalised field position ``(x right, y down)`` of pixel ``(row, col)`` (scalars or
+    arrays, fractional allowed): centre 0, corners at distance 1."""
     half_diag = 0.5 * math.hypot(width - 1, height - 1) or 1.0
     return ((col - (width - 1) / 2.0) / half_diag, (row - (height - 1) / 2.0) / half_diag)

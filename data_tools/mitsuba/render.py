@@ -45,7 +45,7 @@ from typing import Any
 
 import numpy as np
 
-from neuralbokeh.apertures import ApertureModel, Disk
+from neuralbokeh.apertures import ApertureModel, Disk, field_position
 from neuralbokeh.checks import check_at_least, check_positive
 from neuralbokeh.optics import ThinLens
 
@@ -130,8 +130,7 @@ def clip_fraction_table(aperture: ApertureModel, grid: int = 33, samples: int = 
     table = np.empty((grid, grid))
     for i, fy in enumerate(f):
         for j, fx in enumerate(f):
-            inside = (u + aperture.cat_eye * fx) ** 2 + (v - aperture.cat_eye * fy) ** 2 <= aperture.vignetting_radius**2
-            table[i, j] = (t * inside).sum() / t.sum()
+            table[i, j] = (t * aperture.transmits(u, v, fx, fy)).sum() / t.sum()
     return table
 
 
@@ -159,11 +158,8 @@ def vignetting_weight(aperture: ApertureModel, camera: Camera, lens: ThinLens, f
     h, w = camera.height, camera.width
     c = lens.coc_px(depth_m, focus_m, w, signed=True)
     cols, rows = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
-    half_diag = 0.5 * math.hypot(w - 1, h - 1) or 1.0
-    fx = (cols - c / 2.0 * u - (w - 1) / 2.0) / half_diag
-    fy = (rows + c / 2.0 * v - (h - 1) / 2.0) / half_diag
-    inside = (u + aperture.cat_eye * fx) ** 2 + (v - aperture.cat_eye * fy) ** 2 <= aperture.vignetting_radius**2
-    return np.where(inside, 1.0 / np.maximum(_lookup(table, fx, fy), 1e-6), 0.0)
+    fx, fy = field_position(rows + c / 2.0 * v, cols - c / 2.0 * u, h, w)
+    return np.where(aperture.transmits(u, v, fx, fy), 1.0 / np.maximum(_lookup(table, fx, fy), 1e-6), 0.0)
 
 
 @dataclass
@@ -192,7 +188,7 @@ def choose_method(method: str, aperture: ApertureModel) -> str:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     if any(s != 1.0 for s in aperture.channel_scale):
         raise ValueError(f"per-channel CoC scale {aperture.channel_scale} is not rendered by Mitsuba; use data_tools.synth")
-    plain_disk = isinstance(aperture.shape, Disk) and aperture.cat_eye == 0.0 and aperture.vignetting_radius >= 1.0
+    plain_disk = isinstance(aperture.shape, Disk) and not aperture.vignetted
     if method == "thinlens" and not plain_disk:
         raise ValueError(f"the thinlens sensor renders a plain disk only, got {aperture.to_dict()}; use method 'accumulate'")
     return method if method != "auto" else ("thinlens" if plain_disk else "accumulate")
@@ -237,7 +233,7 @@ def render_defocus(mi: ModuleType, scene: Any, camera: Camera, lens: ThinLens, a
         sensor = _load_sensor(mi, _sensor(camera, 1))
         params = mi.traverse(sensor)
         table = clip_fraction_table(aperture)
-        vignetted = aperture.cat_eye > 0.0 or aperture.vignetting_radius < 1.0
+        vignetted = aperture.vignetted
         integrator = scene.integrator() or mi.load_dict({"type": "path"})
         if vignetted:  # each ray's depth too: the vignetting follows its scene point
             integrator = mi.load_dict({"type": "aov", "aovs": "z:depth", "integrator": integrator})
