@@ -21,10 +21,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("checkpoint", help="checkpoint written by train.py")
     p.add_argument("--out", required=True, help="ONNX file to write")
     p.add_argument("--opset", type=int, default=17, help="ONNX opset (>= 17; default 17)")
-    p.add_argument("--fp16", action="store_true", help="float16 weights and trunk (C2, tanh and head stay float32)")
+    p.add_argument("--fp16", action="store_true",
+                   help="float16 convolutions (paper network: weights and trunk, C2, tanh and head stay float32; "
+                        "lens network: the band convolutions)")
     p.add_argument("--kernels", default=DEFAULT_KERNELS,
-                   help="direct | lowrank:R | auto:EPS (smallest separable rank with relative kernel error <= EPS; "
-                        f"default {DEFAULT_KERNELS})")
+                   help="paper network: direct | lowrank:R | auto:EPS (per convolution the smallest separable rank whose "
+                        f"effect on the model's output is within EPS / sqrt(#convolutions); default {DEFAULT_KERNELS}); "
+                        "the lens network always exports its kernels direct")
     p.add_argument("--tolerance", type=float, help="max abs parity error, normalised units (default 1e-4; 2e-2 with --fp16)")
     p.add_argument("--threads", type=int, default=None, help="onnxruntime threads for the parity check")
     p.add_argument("-v", "--verbose", action="store_true")

@@ -33,8 +33,10 @@ def main(argv: list[str] | None = None) -> int:
     if int(os.environ.get("RANK", "0")) != 0:
         return 0
     m = summary["metrics"]
-    print(f"model        N = {summary['model']['blocks']} blocks, {summary['model']['features']} features, "
-          f"tiles {summary['model']['tiling']} ({summary['model']['tile']} + {summary['model']['overlap']} px)")
+    mc = summary["model"]
+    what = f"{mc['features']} features" if mc["architecture"] == "paper" else f"learned {mc['pupil_size']}^2 pupils"
+    print(f"model        {mc['architecture']}: N = {mc['blocks']} blocks, {what}, "
+          f"tiles {mc['tiling']} ({mc['tile']} + {mc['overlap']} px)")
     print(f"trained      {summary['steps']} steps in {summary['seconds']} s on {summary['train_samples']} samples "
           f"({summary['skipped_steps']} skipped as non-finite)")
     if m:
@@ -42,6 +44,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"  model                          {m['eval_psnr']:7.2f}  {m['eval_ssim']:.4f}")
         print(f"  identity (AIF unchanged)       {m['identity_psnr']:7.2f}  {m['identity_ssim']:.4f}")
         print(f"  Gaussian blur from the CoC     {m['gaussian_psnr']:7.2f}  {m['gaussian_ssim']:.4f}")
+        print(f"  oracle (scene.json aperture)   {m['oracle_psnr']:7.2f}  {m['oracle_ssim']:.4f}")
+        gap = m["oracle_psnr"] - m["gaussian_psnr"]
+        if gap > 0:
+            print(f"  the model closes {100 * (m['eval_psnr'] - m['gaussian_psnr']) / gap:.0f} % of the gap between the "
+                  f"Gaussian and the oracle ({gap:.2f} dB)")
     print(f"checkpoint   {summary['checkpoint']}")
     return 0
 

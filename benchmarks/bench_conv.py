@@ -70,8 +70,8 @@ def main() -> None:
     print(f"{'N':>3} {'k max':>6} {'direct s':>9} {'fft s':>8} {'direct/fft':>11}")
     for n in args.blocks:
         common = dict(image_height=args.size, image_width=args.size, blocks=n, features=8, tile=args.size // 2, overlap=args.size // 8)
-        direct = _step_time(ModelConfig(**common, fft_min_kernel=10**6, fft_min_kernel_train=10**6), args.batch, args.repeats)
-        fast = _step_time(ModelConfig(**common), args.batch, args.repeats)
+        direct = _step_time(ModelConfig(**common, fft_min_kernel=10**6, fft_min_kernel_train=10**6, architecture="paper"), args.batch, args.repeats)
+        fast = _step_time(ModelConfig(**common, architecture="paper"), args.batch, args.repeats)
         print(f"{n:>3} {2 * n + 1:>6} {direct:>9.2f} {fast:>8.2f} {direct / fast:>11.1f}", flush=True)
     print("\none depthwise layer, 32 channels, 2 x 192 x 192 (ms)")
     print(f"{'k':>3} {'direct fwd':>11} {'fft fwd':>8} {'direct f+b':>11} {'fft f+b':>8}")

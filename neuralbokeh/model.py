@@ -46,7 +46,10 @@ import torch.nn.functional as F
 
 from .checks import check_finite
 from .render.fftconv import fft_convolve2d
+from .tiling import tile, untile
 
+ARCHITECTURES = ("lens", "paper")
+PUPIL_INITS = ("disk", "gaussian", "aperture")
 KERNELS = ("growing", "fixed3")
 TILINGS = ("overlap", "none", "no_overlap")
 HEADS = ("identity", "paper")
@@ -70,6 +73,20 @@ class ModelConfig:
         head: ``"identity"`` or ``"paper"`` (see the module doc).
         fft_min_kernel: kernel size from which per-channel convolutions use the FFT (no grad).
         fft_min_kernel_train: the same when gradients are computed.
+        architecture: ``"lens"`` (default: :class:`neuralbokeh.lensnet.LensBokeh`, the skeleton
+            with a learned lens) or ``"paper"`` (:class:`NeuralBokeh`, the paper as written).
+        coc_scale_px: the CoC input's px per unit (the data's largest |CoC|); the lens
+            architecture needs it (> 0) to size its kernels.
+        norm_scale, norm_offset: the colour normalisation's ``s`` and ``o`` (linear units), so
+            the lens architecture works in linear light.
+        pupil_size: samples per side of each learned pupil grid (lens), >= 4.
+        pupil_init: the lens architecture's starting pupil: ``"disk"``, ``"gaussian"`` (the
+            baseline's profile) or ``"aperture"`` (the shape in ``init_aperture``).
+        occlusion_margin_px: CoC difference (px) over which light changes from "same surface"
+            to "in front of / behind" the receiving pixel (lens), > 0.
+        init_aperture: ``ApertureModel.to_dict()`` of the data (for ``pupil_init = "aperture"``).
+        (``features``, ``overlap`` semantics, ``head`` and the FFT thresholds: paper only;
+        ``tile``, ``overlap``, ``tiling``, ``kernels``, ``blocks``: both.)
     """
 
     image_height: int
@@ -83,6 +100,14 @@ class ModelConfig:
     head: str = "identity"
     fft_min_kernel: int = 15
     fft_min_kernel_train: int = 5
+    architecture: str = "lens"
+    coc_scale_px: float = 0.0
+    norm_scale: float = 0.18
+    norm_offset: float = 0.0018
+    pupil_size: int = 48
+    pupil_init: str = "disk"
+    occlusion_margin_px: float = 2.0
+    init_aperture: dict | None = None
 
     def __post_init__(self) -> None:
         for name in ("image_height", "image_width", "features", "tile", "fft_min_kernel", "fft_min_kernel_train"):
@@ -93,7 +118,18 @@ class ModelConfig:
             raise ValueError(f"blocks must be an integer >= 0, got {self.blocks!r}")
         if not isinstance(self.overlap, int) or self.overlap < 0 or 2 * self.overlap > self.tile:
             raise ValueError(f"overlap must be an integer with 0 <= 2 * overlap <= tile ({self.tile}), got {self.overlap!r}")
-        for name, allowed in (("tiling", TILINGS), ("kernels", KERNELS), ("head", HEADS)):
+        if not isinstance(self.pupil_size, int) or self.pupil_size < 4:
+            raise ValueError(f"pupil_size must be an integer >= 4, got {self.pupil_size!r}")
+        for name in ("coc_scale_px", "norm_offset"):
+            if not (isinstance(self.__getattribute__(name), (int, float)) and math.isfinite(getattr(self, name)) and getattr(self, name) >= 0):
+                raise ValueError(f"{name} must be a finite number >= 0, got {getattr(self, name)!r}")
+        for name in ("norm_scale", "occlusion_margin_px"):
+            if not (isinstance(getattr(self, name), (int, float)) and math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
+                raise ValueError(f"{name} must be a finite number > 0, got {getattr(self, name)!r}")
+        if self.architecture == "lens" and self.coc_scale_px <= 0:
+            raise ValueError(f"architecture 'lens' needs coc_scale_px > 0 px, got {self.coc_scale_px!r}")
+        for name, allowed in (("tiling", TILINGS), ("kernels", KERNELS), ("head", HEADS),
+                              ("architecture", ARCHITECTURES), ("pupil_init", PUPIL_INITS)):
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name} must be one of {allowed}, got {getattr(self, name)!r}")
 
@@ -124,49 +160,9 @@ class ModelConfig:
         unknown = set(d) - known
         if unknown:
             raise ValueError(f"unknown model config keys {sorted(unknown)}; expected {sorted(known)}")
+        if "architecture" not in d:  # checkpoints written before the switch hold the paper's network
+            d = {**d, "architecture": "paper"}
         return cls(**d)
-
-
-def tile(x: torch.Tensor, layout: tuple[int, int, int, int]) -> torch.Tensor:
-    """Cut ``(B, C, H, W)`` into overlapping windows, concatenated along channels.
-
-    Returns ``(B, rows * cols * C, t + 2 t_o, t + 2 t_o)``, tile-major (tile k owns channels
-    ``k*C .. k*C + C - 1``). Padding: edge replication to ``rows * t x cols * t``, then
-    ``t_o`` all round.
-    """
-    rows, cols, t, t_o = layout
-    b, c, h, w = x.shape
-    pad = (t_o, t_o + cols * t - w, t_o, t_o + rows * t - h)
-    if any(pad):
-        x = F.pad(x, pad, mode="replicate")
-    win = t + 2 * t_o
-    tiles = [x[:, :, i * t : i * t + win, j * t : j * t + win] for i in range(rows) for j in range(cols)]
-    return torch.cat(tiles, dim=1)
-
-
-def untile(y: torch.Tensor, layout: tuple[int, int, int, int], height: int, width: int) -> torch.Tensor:
-    """Put windows back and average the overlaps; the inverse of :func:`tile` on its output.
-
-    ``y`` is ``(B, rows * cols * C, win, win)``; returns ``(B, C, height, width)``. With
-    ``2 t_o <= t`` windows of tiles two apart never overlap, so the four parity classes of the
-    grid are placed without summing and combined as ``((P00 + P01) + (P10 + P11)) / count``:
-    untouched tiles reassemble to the input bit for bit.
-    """
-    rows, cols, t, t_o = layout
-    b, n_c, win, _ = y.shape
-    c = n_c // (rows * cols)
-    hp, wp = rows * t + 2 * t_o, cols * t + 2 * t_o
-    canvases = [[y.new_zeros(b, c, hp, wp) for _ in range(2)] for _ in range(2)]
-    counts = [[torch.zeros(1, 1, hp, wp, dtype=y.dtype, device=y.device) for _ in range(2)] for _ in range(2)]
-    for i in range(rows):
-        for j in range(cols):
-            k = i * cols + j
-            sl = (slice(None), slice(None), slice(i * t, i * t + win), slice(j * t, j * t + win))
-            canvases[i % 2][j % 2][sl] = y[:, k * c : (k + 1) * c]
-            counts[i % 2][j % 2][sl] = 1.0
-    total = (canvases[0][0] + canvases[0][1]) + (canvases[1][0] + canvases[1][1])
-    count = (counts[0][0] + counts[0][1]) + (counts[1][0] + counts[1][1])
-    return (total / count)[:, :, t_o : t_o + height, t_o : t_o + width]
 
 
 class PerChannelConv(nn.Module):
@@ -261,3 +257,10 @@ class NeuralBokeh(nn.Module):
     def tile_targets(self, y: torch.Tensor) -> torch.Tensor:
         """Cut a target ``(B, 3, H, W)`` into the same windows (for the per-tile-loss ablation)."""
         return tile(y, self.config.layout)
+
+
+def build_model(config: ModelConfig) -> nn.Module:
+    """The network a config describes: :class:`~neuralbokeh.lensnet.LensBokeh` or :class:`NeuralBokeh`."""
+    from .lensnet import LensBokeh  # lensnet imports tiling, never this module: no cycle
+
+    return LensBokeh(config) if config.architecture == "lens" else NeuralBokeh(config)

@@ -96,7 +96,8 @@ def test_export_cli_prints_parity_and_fails_over_tolerance(busy_checkpoint, tmp_
     assert r.returncode != 0 and "opset must be >= 17" in r.stderr
 
 
-def test_lowrank_export_matches_its_reference_and_approximates_the_model(busy_checkpoint, tmp_path):
+def test_lowrank_export_matches_its_reference_and_approximates_the_model(busy_paper_checkpoint, tmp_path):
+    busy_checkpoint = busy_paper_checkpoint  # low-rank factors are the paper network's export option
     model, _ = load_model(busy_checkpoint)
     rep1 = export_checkpoint(busy_checkpoint, tmp_path / "r1.onnx", kernels="lowrank:1", threads=1)
     assert max(rep1["parity"].values()) <= 1e-4  # ONNX == PyTorch with the factorised kernels
@@ -119,8 +120,15 @@ def test_fp16_export_stays_within_its_tolerance(busy_checkpoint, tmp_path):
     report = export_checkpoint(busy_checkpoint, tmp_path / "h.onnx", fp16=True, kernels="direct", threads=1)
     assert report["tolerance"] == 2e-2 and max(report["parity"].values()) <= 2e-2
     m = onnx.load(tmp_path / "h.onnx")
-    branch = next(a.g for n in m.graph.node if n.op_type == "If" for a in n.attribute if a.name == "then_branch")
-    assert any(i.data_type == onnx.TensorProto.FLOAT16 for i in branch.initializer)
+
+    def initializers(graph):  # every graph's, the If branches' nested ones too
+        yield from graph.initializer
+        for node in graph.node:
+            for a in node.attribute:
+                if a.type == onnx.AttributeProto.GRAPH:
+                    yield from initializers(a.g)
+
+    assert any(i.data_type == onnx.TensorProto.FLOAT16 for i in initializers(m.graph))
 
 
 def test_probe_inputs_hold_the_extremes():
@@ -135,3 +143,11 @@ def test_real_trained_checkpoint_exports(trained_checkpoint, tmp_path):
     report = export_checkpoint(trained_checkpoint, tmp_path / "t.onnx", threads=1)
     assert max(report["parity"].values()) <= 1e-4
     assert load_checkpoint(trained_checkpoint)["step"] == report["metadata"]["trained_steps"]
+
+
+def test_lens_network_exports_direct_kernels_and_refuses_lowrank(busy_checkpoint, tmp_path):
+    with pytest.raises(ValueError, match="applies to the paper architecture"):
+        export_checkpoint(busy_checkpoint, tmp_path / "x.onnx", kernels="lowrank:2", threads=1)
+    assert not (tmp_path / "x.onnx").exists()  # nothing was written
+    report = export_checkpoint(busy_checkpoint, tmp_path / "d.onnx", threads=1)  # the default spec: direct here
+    assert report["metadata"]["kernels"] == "direct" and max(report["parity"].values()) <= 1e-4

@@ -15,7 +15,7 @@ def _x(b, h, w, seed=0):
      (96, 128, 48, 12, "no_overlap"), (37, 50, 48, 12, "none"), (20, 20, 64, 32, "overlap")],
 )
 def test_tiling_round_trip_is_exact(h, w, t, t_o, tiling):
-    cfg = ModelConfig(h, w, blocks=1, tile=t, overlap=t_o, tiling=tiling)
+    cfg = ModelConfig(h, w, blocks=1, tile=t, overlap=t_o, tiling=tiling, architecture="paper")
     x = _x(2, h, w)
     tiles = tile(x, cfg.layout)
     rows, cols, core, ov = cfg.layout
@@ -24,38 +24,38 @@ def test_tiling_round_trip_is_exact(h, w, t, t_o, tiling):
 
 
 def test_layouts():
-    assert ModelConfig(1080, 1920, blocks=1).layout == (6, 10, 200, 60)  # the paper's 200 + 60 px
-    assert ModelConfig(1080, 1920, blocks=1, tiling="no_overlap").layout == (6, 10, 200, 0)
-    assert ModelConfig(1080, 1920, blocks=1, tiling="none").layout == (1, 1, 1920, 0)
-    assert ModelConfig(1080, 1920, blocks=1).num_tiles == 60
+    assert ModelConfig(1080, 1920, blocks=1, architecture="paper").layout == (6, 10, 200, 60)  # the paper's 200 + 60 px
+    assert ModelConfig(1080, 1920, blocks=1, tiling="no_overlap", architecture="paper").layout == (6, 10, 200, 0)
+    assert ModelConfig(1080, 1920, blocks=1, tiling="none", architecture="paper").layout == (1, 1, 1920, 0)
+    assert ModelConfig(1080, 1920, blocks=1, architecture="paper").num_tiles == 60
 
 
 @pytest.mark.parametrize("h, w", [(96, 128), (50, 70)])
 def test_untrained_network_is_exactly_the_identity(h, w):
-    model = NeuralBokeh(ModelConfig(h, w, blocks=5, features=6, tile=32, overlap=8))
+    model = NeuralBokeh(ModelConfig(h, w, blocks=5, features=6, tile=32, overlap=8, architecture="paper"))
     x = _x(2, h, w)
     x[0, :3, 0, 0] = -1.0  # the very ends of the range too
     x[0, :3, 0, 1] = 0.999999
     assert torch.equal(model(x), x[:, :3])
-    paper = NeuralBokeh(ModelConfig(h, w, blocks=5, features=6, tile=32, overlap=8, head="paper"))
+    paper = NeuralBokeh(ModelConfig(h, w, blocks=5, features=6, tile=32, overlap=8, head="paper", architecture="paper"))
     assert not torch.allclose(paper(x), x[:, :3], atol=1e-2)
 
 
 def test_shapes_kernels_and_parameters():
-    cfg = ModelConfig(40, 32, blocks=4, features=5, tile=16, overlap=4)
+    cfg = ModelConfig(40, 32, blocks=4, features=5, tile=16, overlap=4, architecture="paper")
     model = NeuralBokeh(cfg)
     assert [b.conv_a.kernel_size for b in model.blocks] == [3, 5, 7, 9]
-    fixed = NeuralBokeh(ModelConfig(40, 32, blocks=4, features=5, tile=16, overlap=4, kernels="fixed3"))
+    fixed = NeuralBokeh(ModelConfig(40, 32, blocks=4, features=5, tile=16, overlap=4, kernels="fixed3", architecture="paper"))
     assert [b.conv_a.kernel_size for b in fixed.blocks] == [3, 3, 3, 3]
     assert model(_x(3, 40, 32)).shape == (3, 3, 40, 32)
     assert model(_x(1, 40, 32), return_tiles=True).shape == (1, cfg.num_tiles * 3, 24, 24)
-    assert len(NeuralBokeh(ModelConfig(40, 32, blocks=0, tile=16, overlap=4)).blocks) == 0
+    assert len(NeuralBokeh(ModelConfig(40, 32, blocks=0, tile=16, overlap=4, architecture="paper")).blocks) == 0
     with pytest.raises(ValueError, match=r"input must have shape \(B, 4, 40, 32\)"):
         model(_x(1, 32, 40))
 
 
 def test_every_tile_has_its_own_weights():
-    cfg = ModelConfig(64, 64, blocks=2, features=4, tile=32, overlap=0, tiling="no_overlap")
+    cfg = ModelConfig(64, 64, blocks=2, features=4, tile=32, overlap=0, tiling="no_overlap", architecture="paper")
     model = NeuralBokeh(cfg)
     torch.nn.init.normal_(model.c2.weight)
     out = model(_x(1, 64, 64))
@@ -91,12 +91,12 @@ def test_fft_switch_depends_on_gradients():
 
 def test_config_validation():
     with pytest.raises(ValueError, match="overlap"):
-        ModelConfig(64, 64, blocks=1, tile=32, overlap=17)
+        ModelConfig(64, 64, blocks=1, tile=32, overlap=17, architecture="paper")
     with pytest.raises(ValueError, match="tiling must be one of"):
-        ModelConfig(64, 64, blocks=1, tiling="grid")
+        ModelConfig(64, 64, blocks=1, tiling="grid", architecture="paper")
     with pytest.raises(ValueError, match="blocks"):
-        ModelConfig(64, 64, blocks=-1)
+        ModelConfig(64, 64, blocks=-1, architecture="paper")
     with pytest.raises(ValueError, match="unknown model config keys"):
-        ModelConfig.from_dict({**ModelConfig(64, 64, blocks=1).to_dict(), "depth": 3})
-    cfg = ModelConfig(64, 64, blocks=3)
+        ModelConfig.from_dict({**ModelConfig(64, 64, blocks=1, architecture="paper").to_dict(), "depth": 3})
+    cfg = ModelConfig(64, 64, blocks=3, architecture="paper")
     assert ModelConfig.from_dict(cfg.to_dict()) == cfg

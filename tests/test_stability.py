@@ -2,7 +2,8 @@
 
 Cases (``probe_inputs``): random, everything in focus, everything at the maximum CoC (both
 signs), a one-pixel depth edge from in focus to the maximum CoC, 1e4 highlights; models:
-a busy 40x32 network (6 tiles), one smaller than one tile and one of odd size. Depth = inf and
+a busy 40x32 network (6 tiles), one smaller than one tile and one of odd size, each for the
+default (lens) architecture and the paper's. Depth = inf and
 NaN/inf inputs are covered through the runtime in ``test_runtime.py`` and below.
 """
 
@@ -11,7 +12,7 @@ import pytest
 import torch
 
 from neuralbokeh.export.exporter import export_checkpoint, probe_inputs, session
-from neuralbokeh.model import ModelConfig, NeuralBokeh
+from neuralbokeh.model import ModelConfig, build_model
 from neuralbokeh.normalization import Normalization
 from neuralbokeh.training import load_model
 from neuralbokeh.training.checkpoint import save_checkpoint
@@ -19,14 +20,17 @@ from neuralbokeh.training.checkpoint import save_checkpoint
 TOLERANCE = {False: 1e-4, True: 2e-2}
 
 
-def _random_checkpoint(path, height, width, blocks=3):
+def _random_checkpoint(path, height, width, architecture, blocks=3):
     torch.manual_seed(height * 1000 + width)
-    cfg = ModelConfig(image_height=height, image_width=width, blocks=blocks, features=4, tile=16, overlap=4)
-    model = NeuralBokeh(cfg)
+    cfg = ModelConfig(image_height=height, image_width=width, blocks=blocks, features=4, tile=16, overlap=4,
+                      architecture=architecture, coc_scale_px=7.0)
+    model = build_model(cfg)
     with torch.no_grad():
         for name, p in model.named_parameters():
             if name.startswith("c2.") or ".conv_b." in name:
                 p.copy_(0.3 * torch.randn_like(p) / max(1, p[0].numel()) ** 0.5)
+            elif name == "pupil":
+                p.add_(1.5 * torch.randn_like(p))
     save_checkpoint(path, {"model_config": cfg.to_dict(), "model_state": model.state_dict(),
                            "lens": {"focal_length_mm": 50.0, "f_number": 2.0, "sensor_width_mm": 36.0},
                            "aperture": None, "normalization": Normalization().to_dict(),
@@ -34,12 +38,14 @@ def _random_checkpoint(path, height, width, blocks=3):
     return path
 
 
-@pytest.fixture(scope="module", params=["busy_40x32", "smaller_than_a_tile_13x11", "odd_37x23"])
-def checkpoint(request, busy_checkpoint, tmp_path_factory):
-    if request.param == "busy_40x32":
-        return busy_checkpoint
-    h, w = (11, 13) if request.param.startswith("smaller") else (23, 37)
-    return _random_checkpoint(tmp_path_factory.mktemp("stab") / f"{request.param}.pt", h, w)
+@pytest.fixture(scope="module", params=[f"{a}_{c}" for a in ("lens", "paper")
+                                        for c in ("busy_40x32", "smaller_than_a_tile_13x11", "odd_37x23")])
+def checkpoint(request, tmp_path_factory):
+    architecture, case = request.param.split("_", 1)
+    if case == "busy_40x32":
+        return request.getfixturevalue("busy_checkpoint" if architecture == "lens" else "busy_paper_checkpoint")
+    h, w = (11, 13) if case.startswith("smaller") else (23, 37)
+    return _random_checkpoint(tmp_path_factory.mktemp("stab") / f"{request.param}.pt", h, w, architecture)
 
 
 @pytest.mark.parametrize("fp16", [False, True], ids=["fp32", "fp16"])

@@ -58,6 +58,7 @@ def test_shipped_configs_load_and_ablations_differ_as_named():
         "no_overlap": ("model", "tiling", "no_overlap"),
         "tile_loss": ("train", "loss", "tile"),
         "paper_head": ("model", "head", "paper"),
+        "paper_network": ("model", "architecture", "paper"),
     }
     for name, (section, key, value) in expected.items():
         cfg = load_config(ROOT / "configs" / "ablations" / f"{name}.toml")
@@ -150,7 +151,7 @@ def test_non_finite_steps_are_skipped_then_abort(tiny_dataset, tmp_path, monkeyp
         train(_config(tmp_path / "b", tiny_dataset, steps=5, max_nonfinite=3), progress=False)
 
 
-@pytest.mark.parametrize("ablation", ["fixed3_kernels", "no_tiling", "no_overlap", "tile_loss", "paper_head"])
+@pytest.mark.parametrize("ablation", ["fixed3_kernels", "no_tiling", "no_overlap", "tile_loss", "paper_head", "paper_network"])
 def test_ablations_train(tiny_dataset, tmp_path, ablation):
     cfg = load_config(
         ROOT / "configs" / "ablations" / f"{ablation}.toml",
@@ -182,14 +183,15 @@ def test_time_limit_stops_with_evaluation_and_checkpoint(tiny_dataset, tmp_path)
 
 
 def test_model_section_mirrors_model_config():
-    # [model] is ModelConfig less what the data decides (image size); a field added to one
-    # must be added to the other.
+    # [model] is ModelConfig less what the data decides (image size, CoC scale, normalisation,
+    # aperture); a field added to one must be added to the other.
     from dataclasses import fields
 
     from neuralbokeh.training.config import ModelSection
 
     section = {f.name for f in fields(ModelSection)}
-    resolved = {f.name for f in fields(ModelConfig)} - {"image_height", "image_width"}
+    from_data = {"image_height", "image_width", "coc_scale_px", "norm_scale", "norm_offset", "init_aperture"}
+    resolved = {f.name for f in fields(ModelConfig)} - from_data
     assert section == resolved
 
 
@@ -197,7 +199,7 @@ def test_large_kernels_learn_at_lr_over_fan_in():
     from neuralbokeh.model import NeuralBokeh
     from neuralbokeh.training.loop import param_groups
 
-    model = NeuralBokeh(ModelConfig(image_height=16, image_width=16, blocks=3, features=2, tile=16, overlap=0))
+    model = NeuralBokeh(ModelConfig(image_height=16, image_width=16, blocks=3, features=2, tile=16, overlap=0, architecture="paper"))
     groups = param_groups(model, "fan_in")
     scales = {g["lr_scale"]: sum(p.numel() for p in g["params"]) for g in groups}
     assert set(scales) == {1.0, 1 / 9, 1 / 25, 1 / 49}  # 1x1 convs and biases at 1; k x k kernels at 1/k^2

@@ -21,6 +21,7 @@ from ..model import NeuralBokeh
 from ..normalization import Normalization
 from ..training.checkpoint import load_model
 from .graph import build_graph
+from .lens_graph import build_lens_graph
 from .lowrank import DEFAULT_KERNELS, cheaper_ranks, factorize, parse_kernels, reconstruct, relative_error
 
 log = logging.getLogger(__name__)
@@ -189,8 +190,15 @@ def export_checkpoint(
     tolerance = DEFAULT_TOLERANCE[fp16] if tolerance is None else tolerance
     model, ckpt = load_model(checkpoint)
     cfg = model.config
-    factors, kernel_report = plan_factors(model, kernels)
-    weights = {k: v.detach().numpy() for k, v in model.state_dict().items()}
+    lens = cfg.architecture == "lens"
+    if lens:  # per-band kernels rasterised from the learned pupils, written direct
+        if kernels != DEFAULT_KERNELS and parse_kernels(kernels).mode != "direct":
+            raise ValueError(f"--kernels {kernels!r} applies to the paper architecture; the lens architecture exports direct kernels")
+        factors, kernel_report = {}, {f"band{n}": {"k": cfg.kernel_size(n), "rank": 0} for n in range(1, cfg.blocks + 1)}
+        kernels = "direct"
+    else:
+        factors, kernel_report = plan_factors(model, kernels)
+        weights = {k: v.detach().numpy() for k, v in model.state_dict().items()}
     meta = {
         "format": "neuralbokeh-onnx", "format_version": METADATA_VERSION, "package_version": __version__,
         "model_config": cfg.to_dict(), "layout": list(cfg.layout), "num_tiles": cfg.num_tiles,
@@ -201,10 +209,16 @@ def export_checkpoint(
         "fp16": fp16, "opset": opset, "source_checkpoint": Path(checkpoint).name,
         "trained_steps": ckpt.get("step"),
     }
-    onnx_model = build_graph(weights, cfg.to_dict(), cfg.layout, factors, fp16, opset,
-                             {METADATA_KEY: json.dumps(meta, sort_keys=True)})
+    props = {METADATA_KEY: json.dumps(meta, sort_keys=True)}
+    if lens:
+        with torch.no_grad():
+            band_kernels = {n: model.kernels(n).double().numpy() for n in range(1, cfg.blocks + 1)}
+        onnx_model = build_lens_graph(band_kernels, model.source_mask[:, 0].numpy(), model.diameters, cfg.to_dict(),
+                                      cfg.layout, fp16, opset, props)
+    else:
+        onnx_model = build_graph(weights, cfg.to_dict(), cfg.layout, factors, fp16, opset, props)
     sess = session(onnx_model.SerializeToString(), threads)
-    reference = lowrank_reference(model, factors)
+    reference = lowrank_reference(model, factors) if factors else model
     active = np.ones(cfg.num_tiles, dtype=bool)
     parity, approx = {}, {}
     with torch.no_grad():

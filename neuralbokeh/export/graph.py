@@ -145,6 +145,27 @@ def _tile_factors(factors: Mapping[str, tuple[np.ndarray, np.ndarray]], key: str
     return cols[ch], rows[ch]
 
 
+def finish_model(nodes: list, initializers: list, name: str, size: tuple[int, int], tiles: int, opset: int,
+                 metadata: Mapping[str, str] | None) -> onnx.ModelProto:
+    """The checked model around a graph with the package's named inputs (``aif``, ``coc``,
+    ``tile_active``) and output (``defocus``) at image size ``(H, W)``."""
+    h, w = size
+    graph = helper.make_graph(
+        nodes, name,
+        [helper.make_tensor_value_info("aif", TensorProto.FLOAT, ["batch", 3, h, w]),
+         helper.make_tensor_value_info("coc", TensorProto.FLOAT, ["batch", 1, h, w]),
+         helper.make_tensor_value_info("tile_active", TensorProto.BOOL, [tiles])],
+        [helper.make_tensor_value_info("defocus", TensorProto.FLOAT, ["batch", 3, h, w])],
+        initializers,
+    )
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", opset)], producer_name="neuralbokeh")
+    model.ir_version = min(model.ir_version, 9)  # readable by onnxruntime releases of the last two years
+    for key, value in (metadata or {}).items():
+        model.metadata_props.add(key=key, value=value)
+    onnx.checker.check_model(model)
+    return model
+
+
 def build_graph(weights: Mapping[str, np.ndarray], cfg: Mapping[str, Any], layout: tuple[int, int, int, int],
                 factors: Mapping[str, tuple[np.ndarray, np.ndarray]] | None = None, fp16: bool = False,
                 opset: int = 17, metadata: Mapping[str, str] | None = None) -> onnx.ModelProto:
@@ -197,17 +218,4 @@ def build_graph(weights: Mapping[str, np.ndarray], cfg: Mapping[str, Any], layou
     nodes.append(helper.make_node("Slice", ["averaged", b.const("crop_start", [t_o, t_o], np.int64),
                                             b.const("crop_end", [t_o + h, t_o + w], np.int64), "axes_hw"],
                                   ["defocus"], name="crop"))
-    graph = helper.make_graph(
-        nodes, "neuralbokeh",
-        [helper.make_tensor_value_info("aif", TensorProto.FLOAT, ["batch", 3, h, w]),
-         helper.make_tensor_value_info("coc", TensorProto.FLOAT, ["batch", 1, h, w]),
-         helper.make_tensor_value_info("tile_active", TensorProto.BOOL, [rows * cols])],
-        [helper.make_tensor_value_info("defocus", TensorProto.FLOAT, ["batch", 3, h, w])],
-        b.initializers,
-    )
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", opset)], producer_name="neuralbokeh")
-    model.ir_version = min(model.ir_version, 9)  # readable by onnxruntime releases of the last two years
-    for key, value in (metadata or {}).items():
-        model.metadata_props.add(key=key, value=value)
-    onnx.checker.check_model(model)
-    return model
+    return finish_model(nodes, b.initializers, "neuralbokeh", (h, w), rows * cols, opset, metadata)

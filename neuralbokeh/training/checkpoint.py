@@ -15,7 +15,7 @@ from typing import Any
 import torch
 
 from .. import __version__
-from ..model import ModelConfig, NeuralBokeh
+from ..model import ModelConfig, NeuralBokeh, build_model
 
 FORMAT = "neuralbokeh-checkpoint"
 FORMAT_VERSION = 1
@@ -61,6 +61,6 @@ def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = 
 def load_model(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> tuple[NeuralBokeh, dict[str, Any]]:
     """Rebuild the network from a checkpoint alone; returns ``(model in eval mode, checkpoint)``."""
     data = load_checkpoint(path, map_location)
-    model = NeuralBokeh(ModelConfig.from_dict(data["model_config"]))
+    model = build_model(ModelConfig.from_dict(data["model_config"]))
     model.load_state_dict(data["model_state"])
     return model.eval(), data

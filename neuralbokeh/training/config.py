@@ -16,7 +16,7 @@ from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
-from ..model import HEADS, KERNELS, TILINGS
+from ..model import ARCHITECTURES, HEADS, KERNELS, PUPIL_INITS, TILINGS
 
 
 @dataclass
@@ -40,9 +40,11 @@ class DataConfig:
 
 @dataclass
 class ModelSection:
-    """Network hyper-parameters (see :class:`neuralbokeh.model.ModelConfig`); the image size comes
-    from the data. ``blocks = "auto"`` takes N from the data's largest CoC."""
+    """Network hyper-parameters (see :class:`neuralbokeh.model.ModelConfig`); the image size, the
+    CoC scale, the normalisation and the aperture come from the data. ``blocks = "auto"`` takes N
+    from the data's largest CoC."""
 
+    architecture: str = "lens"
     blocks: int | str = "auto"
     features: int = 12
     tile: int = 200
@@ -52,6 +54,9 @@ class ModelSection:
     head: str = "identity"
     fft_min_kernel: int = 15
     fft_min_kernel_train: int = 5
+    pupil_size: int = 48
+    pupil_init: str = "disk"
+    occlusion_margin_px: float = 2.0
 
 
 @dataclass
@@ -113,6 +118,8 @@ class TrainConfig:
             ("model.tiling", m.tiling, TILINGS),
             ("model.kernels", m.kernels, KERNELS),
             ("model.head", m.head, HEADS),
+            ("model.architecture", m.architecture, ARCHITECTURES),
+            ("model.pupil_init", m.pupil_init, PUPIL_INITS),
             ("train.lr_schedule", t.lr_schedule, ("cosine", "constant")),
             ("train.lr_kernel_scaling", t.lr_kernel_scaling, ("fan_in", "none")),
             ("train.loss", t.loss, ("image", "tile")),

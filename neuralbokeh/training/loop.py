@@ -10,13 +10,15 @@ un-blended tiles, the paper's ablation). A step whose loss or gradient is not fi
 and counted; ``max_nonfinite`` in a row abort with the step and the batch's scenes named.
 
 Evaluation (held-out scenes): PSNR and SSIM (kornia) of the normalised images mapped to [0, 1]
-(``(n + 1) / 2``), next to two baselines on the same samples: the identity (the all-in-focus
-image returned unchanged) and a CoC-driven Gaussian blur (the scatter renderer with a Gaussian
-profile, sigma = CoC / 4).
+(``(n + 1) / 2``), next to three baselines on the same samples, computed once: the identity (the
+all-in-focus image returned unchanged), a CoC-driven Gaussian blur (the scatter renderer with a
+Gaussian profile, sigma = CoC / 4) and the "oracle" (the scatter renderer with the aperture the
+data's ``scene.json`` declares: exact on data it rendered; what knowing the lens is worth).
 """
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import logging
@@ -24,7 +26,7 @@ import math
 import os
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import torch
 import torch.distributed as dist
@@ -36,7 +38,7 @@ from tqdm import tqdm
 
 from ..apertures import ApertureModel, Gaussian
 from ..data import FocalStackDataset, Normalization
-from ..model import ModelConfig, NeuralBokeh
+from ..model import ModelConfig, NeuralBokeh, build_model
 from ..optics import blocks_for_coc
 from ..render import scatter_defocus
 from .checkpoint import load_checkpoint, save_checkpoint
@@ -46,7 +48,7 @@ log = logging.getLogger(__name__)
 
 CSV_FIELDS = [
     "step", "loss", "lr", "skipped", "eval_psnr", "eval_ssim",
-    "identity_psnr", "identity_ssim", "gaussian_psnr", "gaussian_ssim", "elapsed_s",
+    "identity_psnr", "identity_ssim", "gaussian_psnr", "gaussian_ssim", "oracle_psnr", "oracle_ssim", "elapsed_s",
 ]
 
 
@@ -62,10 +64,15 @@ def model_config_for(cfg: TrainConfig, train_ds: FocalStackDataset) -> ModelConf
     size = _same_across_scenes(train_ds, "image_size")
     m = cfg.model
     blocks = blocks_for_coc(train_ds.max_coc_px) if m.blocks == "auto" else int(m.blocks)
+    norm = train_ds.normalization
     return ModelConfig(
         image_height=size["height"], image_width=size["width"], blocks=blocks, features=m.features,
         tile=m.tile, overlap=m.overlap, tiling=m.tiling, kernels=m.kernels, head=m.head,
         fft_min_kernel=m.fft_min_kernel, fft_min_kernel_train=m.fft_min_kernel_train,
+        architecture=m.architecture, coc_scale_px=float(train_ds.coc_scale_px),
+        norm_scale=float(norm.scale), norm_offset=float(norm.offset), pupil_size=m.pupil_size,
+        pupil_init=m.pupil_init, occlusion_margin_px=float(m.occlusion_margin_px),
+        init_aperture=_same_across_scenes(train_ds, "aperture") if m.pupil_init == "aperture" else None,
     )
 
 
@@ -134,7 +141,7 @@ def evaluate(model: NeuralBokeh, samples: _Samples, device: torch.device, baseli
     gauss = ApertureModel(Gaussian(0.5))
     sums = {"eval_psnr": 0.0, "eval_ssim": 0.0}
     todo = baselines is None
-    base = {k: 0.0 for k in ("identity_psnr", "identity_ssim", "gaussian_psnr", "gaussian_ssim")}
+    base = {k: 0.0 for k in ("identity_psnr", "identity_ssim", "gaussian_psnr", "gaussian_ssim", "oracle_psnr", "oracle_ssim")}
     for i in range(len(ds)):
         x, y, _ = samples.batch([i], device)
         p, s = _metrics(model(x), y)
@@ -150,6 +157,10 @@ def evaluate(model: NeuralBokeh, samples: _Samples, device: torch.device, baseli
             p, s = _metrics(norm.encode(blurred).float(), y)
             base["gaussian_psnr"] += p
             base["gaussian_ssim"] += s
+            exact = ApertureModel.from_dict(ds.metas[ds.items[i][0]]["aperture"])
+            p, s = _metrics(norm.encode(scatter_defocus(linear, x[:, 3:].double() * ds.coc_scale_px, exact)).float(), y)
+            base["oracle_psnr"] += p
+            base["oracle_ssim"] += s
     n = max(len(ds), 1)
     out = {k: v / n for k, v in sums.items()}
     out.update(baselines if not todo else {k: v / n for k, v in base.items()})
@@ -167,7 +178,26 @@ def _digest(model: torch.nn.Module) -> str:
     return h.hexdigest()
 
 
-def train(
+@contextlib.contextmanager
+def torch_threads(threads: int) -> Iterator[None]:
+    """Run the block with ``threads`` intra-op threads (0: unchanged), then restore the previous
+    count: library code never leaves a process-wide setting changed behind it."""
+    before = torch.get_num_threads()
+    if threads:
+        torch.set_num_threads(threads)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
+def train(cfg: TrainConfig, *args: Any, **kwargs: Any) -> dict[str, Any]:
+    """Train from a config with ``cfg.train.threads`` threads; see :func:`_train`."""
+    with torch_threads(cfg.train.threads):
+        return _train(cfg, *args, **kwargs)
+
+
+def _train(
     cfg: TrainConfig,
     resume: str | os.PathLike | None = None,
     progress: bool = True,
@@ -197,8 +227,6 @@ def train(
     rank = dist.get_rank() if distributed else 0
     local_rank = int(os.environ.get("LOCAL_RANK", "0"))
     device = torch.device(f"cuda:{local_rank}") if torch.cuda.is_available() else torch.device("cpu")
-    if cfg.train.threads:
-        torch.set_num_threads(cfg.train.threads)
     t = cfg.train
     if t.batch_size % world:
         raise ValueError(f"train.batch_size ({t.batch_size}) must be divisible by the number of processes ({world})")
@@ -214,7 +242,7 @@ def train(
     mcfg = model_config_for(cfg, train_ds)
 
     torch.manual_seed(t.seed)
-    model = NeuralBokeh(mcfg).to(device)
+    model = build_model(mcfg).to(device)
     optimizer = torch.optim.Adam(param_groups(model, t.lr_kernel_scaling), lr=t.lr)
     start, skipped = 0, 0
     if resume:

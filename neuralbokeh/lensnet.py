@@ -1,0 +1,309 @@
+"""The default network: the paper's tiled skeleton carrying a learned lens (pure definitions).
+
+Same interface as :class:`neuralbokeh.model.NeuralBokeh` (the paper's network, kept as the
+``architecture = "paper"`` ablation): input ``(B, 4, H, W)`` = normalised all-in-focus RGB in
+[-1, 1) and the CoC divided by ``coc_scale_px``; output ``(B, 3, H, W)`` normalised RGB.
+
+The skeleton of the paper, given what a lens blur is made of:
+
+1. *Linear light.* The input RGB is decoded to linear HDR (the exact inverse of
+   :class:`~neuralbokeh.normalization.Normalization`); the output is encoded back, which is the
+   head's tanh (the normalisation *is* ``tanh(ln((x + o) / s) / 2)``). A blur is linear in
+   linear light: a 1000x highlight spread over a disk stays bright.
+2. *Tiles with their own weights.* The image is cut into ``tile`` px cores with ``overlap`` px
+   of context (as the paper). Each tile owns a learned *pupil* per colour channel and per side
+   of the focus plane (in front, behind): a ``pupil_size``^2 grid of log-transmissions over
+   ``[-1.25, 1.25]^2`` aperture radii. This is where the lens is learned: the aperture shape,
+   the cat-eye clipping of that part of the field, a bright rim or centre, per-channel
+   differences. A learned per-channel scale of the CoC diameter models longitudinal chromatic
+   aberration.
+3. *C1: the multiplicative CoC gate.* The signed CoC ``c`` (px) of each pixel is split into
+   bands by hat functions of ``|c|``: band 0 is ``|c| <= 1`` px (in focus: a point), band
+   ``n = 1..N`` is centred at ``d_n = 1 + n (c_max - 1) / N`` px, so ``d_N = c_max`` and
+   ``d_n <= 2n + 1``. Features of band ``n`` = (colour x gate, gate), for each side.
+4. *Residual blocks R_1..R_N.* Block ``n`` scatters its band with per-channel kernels of size
+   ``2n + 1`` (the paper's growing kernels, up to the largest CoC): the tile's pupil rasterised
+   (anti-aliased, normalised to sum 1) at diameter ``d_n`` x the channel scale, point-reflected
+   in front of the focus plane. It adds colour and coverage to the residual stream of
+   accumulators, in the bucket of each receiving pixel it lands on (below). A band that no
+   pixel of a tile uses is not computed at all (exact: its gate is zero there).
+5. *Occlusion* (near over far, without the layered scatter's trap on continuous surfaces).
+   Light arriving at pixel ``p`` is sorted by its band's CoC relative to ``p``'s own CoC into
+   *near*, *same surface* and *far* buckets (soft ramps ``occlusion_margin_px`` wide). Inside a
+   bucket light is summed, so neighbouring bands of one sloped surface never occlude each
+   other; across buckets it is composited near over same over far with sum-to-saturation
+   (light-field patent). Coverage that stays below 1 (what foregrounds hide in the AIF) is
+   filled by normalising (``fill_holes`` of the reference renderer).
+6. *Reassembly.* Each tile scatters the light of its own core (cores partition the image; at
+   the image border a core reaches to its window's edge), into its whole window; windows are
+   summed into place (light adds, so a tile's blur crosses into its neighbours' cores exactly as
+   far as ``overlap`` allows), then composited once (C2: the buckets to RGB) and encoded (tanh).
+   The loss is the MSE of the reassembled image, as in the paper.
+
+Departures from the paper, on purpose: the blocks are residual *accumulators* (each adds the
+scatter of its band) rather than a ReLU stack; the per-channel kernels are generated from a
+pupil instead of free weights (a prior: one aperture shape scaled by the CoC, measured to train
+from little data); overlaps are summed as light rather than averaged. The untrained network
+(``pupil_init``: ``disk``, ``gaussian`` or ``aperture``, the data's aperture shape without
+vignetting) already is a CoC-driven scatter renderer; training learns the real lens.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from .apertures import Aperture, Disk, Gaussian, aperture_from_dict
+from .checks import check_finite
+from .render.fftconv import next_fast_len
+from .tiling import tile
+
+log = logging.getLogger(__name__)
+
+PUPIL_EXTENT = 1.25  # the pupil grid covers [-PUPIL_EXTENT, PUPIL_EXTENT]^2 aperture radii
+PUPIL_FLOOR = 1e-3  # initial transmission outside the prior's shape (log space cannot hold 0)
+SUPERSAMPLE = 4  # pupil samples per kernel pixel side (anti-aliasing)
+_EPS = 1e-8
+
+
+def band_diameters(c_max: float, blocks: int) -> np.ndarray:
+    """Centres ``d_0 = 0, d_n = 1 + n (c_max - 1) / N`` (px) of the CoC bands, ``(N + 1,)``."""
+    d = 1.0 + np.arange(blocks + 1) * (max(c_max, 1.0) - 1.0) / max(blocks, 1)
+    d[0] = 0.0
+    return d
+
+
+def band_position(coc_px: torch.Tensor, c_max: float, blocks: int) -> torch.Tensor:
+    """Continuous band index in ``[0, N]`` of each pixel's ``|c|``: 0 up to 1 px (a point),
+    ``n`` at ``d_n``, linear in between; ``|c|`` above ``c_max`` stays at N."""
+    step = (max(c_max, 1.0) - 1.0) / max(blocks, 1)
+    if blocks == 0 or step <= 0:  # every CoC is <= 1 px: only the in-focus band
+        return torch.zeros_like(coc_px)
+    return ((coc_px.abs() - 1.0).clamp_min(0.0) / step).clamp(max=float(blocks))
+
+
+def _gate(pos: torch.Tensor, n: int) -> torch.Tensor:
+    return (1.0 - (pos - n).abs()).clamp_min(0.0)
+
+
+def band_gates(coc_px: torch.Tensor, c_max: float, blocks: int) -> torch.Tensor:
+    """Hat weights of every band at each pixel: ``(..., N + 1)``, summing to 1.
+
+    Band 0 takes ``|c| <= 1`` px whole (a point); between band centres the weight is linear in
+    ``|c|`` (:func:`band_position`).
+    """
+    pos = band_position(coc_px, c_max, blocks)
+    return torch.stack([_gate(pos, n) for n in range(blocks + 1)], dim=-1)
+
+
+def bucket_weights(band_coc: float, receiver_coc: torch.Tensor, margin: float) -> torch.Tensor:
+    """Soft (near, same, far) weights ``(3, ...)`` of light from a band at signed CoC ``band_coc``
+    arriving at pixels whose own signed CoC is ``receiver_coc`` (px; negative = in front)."""
+    delta = band_coc - receiver_coc  # < 0: the source is nearer than the receiver
+    near = ((-delta - margin) / margin).clamp(0.0, 1.0)
+    far = ((delta - margin) / margin).clamp(0.0, 1.0)
+    return torch.stack([near, 1.0 - near - far, far])
+
+
+def prior_transmission(shape: Aperture, size: int) -> np.ndarray:
+    """The shape's transmission on the pupil grid, ``(size, size)``, row 0 at the top (v up)."""
+    axis = np.linspace(-PUPIL_EXTENT, PUPIL_EXTENT, size)
+    s = 4
+    offs = ((np.arange(s) + 0.5) / s - 0.5) * (axis[1] - axis[0])
+    u = (axis[:, None] + offs[None, :]).reshape(-1)
+    t = shape.transmission(u[None, :], -u[:, None])  # rows: v goes down the rows
+    return t.reshape(size, s, size, s).mean(axis=(1, 3))
+
+
+def _prior_shape(cfg: Any) -> Aperture:
+    if cfg.pupil_init == "disk":
+        return Disk()
+    if cfg.pupil_init == "gaussian":
+        return Gaussian(0.5)
+    if not cfg.init_aperture:
+        raise ValueError("pupil_init = 'aperture' needs the data's aperture (init_aperture), got none")
+    return aperture_from_dict(cfg.init_aperture["shape"])
+
+
+class LensBokeh(nn.Module):
+    """The default network (see the module doc). Built from a :class:`~neuralbokeh.model.ModelConfig`."""
+
+    def __init__(self, config: Any) -> None:
+        super().__init__()
+        self.config = config
+        cfg = config
+        if cfg.coc_scale_px <= 0:
+            raise ValueError(f"the lens architecture needs coc_scale_px > 0 (the CoC input's px per unit), got {cfg.coc_scale_px}")
+        self.c_max = float(cfg.coc_scale_px)
+        self.diameters = band_diameters(self.c_max, cfg.blocks)
+        prior = prior_transmission(_prior_shape(cfg), cfg.pupil_size)
+        logits = np.log(np.maximum(prior, PUPIL_FLOOR))
+        # (tiles, side [behind, in front], channel, P, P) log-transmissions
+        init = np.broadcast_to(logits, (cfg.num_tiles, 2, 3, cfg.pupil_size, cfg.pupil_size)).copy()
+        self.pupil = nn.Parameter(torch.from_numpy(init).float())
+        self.log_channel_scale = nn.Parameter(torch.zeros(3))
+        rows, cols, t, t_o = cfg.layout
+        reach = math.ceil(0.5 * self.c_max * 1.1)  # the largest CoC radius, with room for a learned channel scale
+        if rows * cols > 1 and t_o < reach:
+            log.warning("tile overlap %d px is below the largest CoC radius (~%d px): light that a tile's blur would "
+                        "carry beyond its window is lost (raise model.overlap)", t_o, reach)
+        self.register_buffer("source_mask", self._source_masks(rows, cols, t, t_o), persistent=False)
+
+    @staticmethod
+    def _source_masks(rows: int, cols: int, t: int, t_o: int) -> torch.Tensor:
+        """``(tiles, 1, win, win)``: 1 on the pixels whose light a tile scatters (its core, out
+        to the window's edge on image-border sides)."""
+        win = t + 2 * t_o
+        masks = torch.zeros(rows * cols, 1, win, win)
+        for i in range(rows):
+            for j in range(cols):
+                r0, r1 = (0 if i == 0 else t_o), (win if i == rows - 1 else t_o + t)
+                c0, c1 = (0 if j == 0 else t_o), (win if j == cols - 1 else t_o + t)
+                masks[i * cols + j, 0, r0:r1, c0:c1] = 1.0
+        return masks
+
+    # -- kernels ---------------------------------------------------------------------------
+    def kernel_size(self, n: int) -> int:
+        return self.config.kernel_size(n)
+
+    def kernels(self, n: int) -> torch.Tensor:
+        """Band ``n``'s kernels ``(tiles, 2, 3, k, k)`` (side 0 behind, 1 in front, already
+        point-reflected), each summing to 1, as a correlation-free PSF (light lands at
+        ``p + offset``)."""
+        cfg = self.config
+        k = self.kernel_size(n)
+        h = k // 2
+        scale = torch.exp(self.log_channel_scale)  # (3,)
+        radius = 0.5 * float(self.diameters[n]) * scale  # (3,) px
+        offs = (torch.arange(SUPERSAMPLE, dtype=torch.float32, device=self.pupil.device) + 0.5) / SUPERSAMPLE - 0.5
+        pos = (torch.arange(-h, h + 1, dtype=torch.float32, device=self.pupil.device)[:, None] + offs).reshape(-1)
+        m = pos.numel()
+        u = pos[None, None, :] / radius[:, None, None] / PUPIL_EXTENT  # (3, 1, m), in grid units [-1, 1]
+        v = pos[None, :, None] / radius[:, None, None] / PUPIL_EXTENT  # rows go down; grid rows too
+        grid = torch.stack([u.expand(3, m, m), v.expand(3, m, m)], dim=-1)  # (3, m, m, 2)
+        t_count = cfg.num_tiles
+        pup = torch.exp(self.pupil).reshape(t_count * 2, 3, cfg.pupil_size, cfg.pupil_size)
+        pup = pup.permute(1, 0, 2, 3)  # (3, T*2, P, P): one grid per channel
+        samples = F.grid_sample(pup, grid, mode="bilinear", padding_mode="zeros", align_corners=True)  # (3, T*2, m, m)
+        kern = samples.reshape(3, t_count * 2, k, SUPERSAMPLE, k, SUPERSAMPLE).mean(dim=(3, 5))
+        kern = kern.permute(1, 0, 2, 3).reshape(t_count, 2, 3, k, k)
+        kern = kern / kern.sum(dim=(-2, -1), keepdim=True).clamp_min(_EPS)
+        # in front of the focus plane the aperture's image is inverted
+        return torch.stack([kern[:, 0], kern[:, 1].flip(-2, -1)], dim=1)
+
+    # -- forward ---------------------------------------------------------------------------
+    def _decode(self, n: torch.Tensor) -> torch.Tensor:
+        s, o = self.config.norm_scale, self.config.norm_offset
+        return s * (1.0 + n) / (1.0 - n) - o
+
+    def _encode(self, x: torch.Tensor) -> torch.Tensor:
+        s, o = self.config.norm_scale, self.config.norm_offset
+        shifted = x + o
+        return (shifted - s) / (shifted + s)
+
+    def tile_accumulators(self, x: torch.Tensor, tile_active: torch.Tensor | None = None) -> torch.Tensor:
+        """``(B, 4, H, W)`` -> per-window accumulators ``(B, tiles, 3 buckets, 6, win, win)``
+        (premultiplied RGB and per-channel coverage of the near, same-surface and far light).
+
+        ``tile_active`` (``(tiles,)`` bool, optional): inactive tiles pass their core through
+        as in-focus light without any convolution (exact when their window is all in focus).
+        """
+        cfg = self.config
+        if x.ndim != 4 or x.shape[1] != 4 or tuple(x.shape[2:]) != (cfg.image_height, cfg.image_width):
+            raise ValueError(f"input must have shape (B, 4, {cfg.image_height}, {cfg.image_width}) for this model, got {tuple(x.shape)}")
+        check_finite("model input", x)
+        layout = cfg.layout
+        n_t = cfg.num_tiles
+        b = x.shape[0]
+        xt = tile(x, layout)
+        win = xt.shape[-1]
+        xt = xt.view(b, n_t, 4, win, win)
+        rgb = self._decode(xt[:, :, :3])  # linear light
+        coc = xt[:, :, 3] * self.c_max  # (B, T, win, win) signed px
+        pos = band_position(coc, self.c_max, cfg.blocks)  # continuous band index
+        src = self.source_mask.to(x.dtype)[None]  # (1, T, 1, win, win)
+        active = torch.ones(n_t, dtype=torch.bool, device=x.device) if tile_active is None else tile_active.to(x.device)
+        # band 0 (in focus): a point, lands where it is, in the receiver's own bucket
+        g0 = _gate(pos, 0).unsqueeze(2) * src  # (B, T, 1, win, win)
+        same = torch.cat([rgb * g0, g0.expand(-1, -1, 3, -1, -1)], dim=2)
+        if not bool(active.all()):  # inactive tiles: their whole core as in-focus light
+            keep = (~active).view(1, n_t, 1, 1, 1).to(x.dtype)
+            passthrough = torch.cat([rgb * src, src.expand(b, -1, 3, -1, -1)], dim=2)
+            same = keep * passthrough + (1.0 - keep) * same
+        zeros = torch.zeros_like(same)
+        acc = torch.stack([zeros, same, zeros], dim=2).view(b * n_t, 3, 6, win, win)
+        self.last_convolutions = 0  # (image, tile, band, side) scatters computed by the last call
+        if cfg.blocks == 0:
+            return acc.view(b, n_t, 3, 6, win, win)
+        coc_flat = coc.reshape(b * n_t, win, win)
+        rgb_flat = rgb.reshape(b * n_t, 3, win, win)
+        fs = next_fast_len(win + self.kernel_size(cfg.blocks) - 1)
+        contribs, indices = [], []
+        for n in range(1, cfg.blocks + 1):
+            g = _gate(pos, n) * src[:, :, 0]  # (B, T, win, win)
+            kern = None
+            for side, sign in ((0, 1.0), (1, -1.0)):
+                gs = g * ((coc > 0) if side == 0 else (coc < 0)).to(x.dtype)
+                used = (gs.flatten(2).amax(-1) > 0) & active[None, :]  # (B, T)
+                idx = torch.nonzero(used.flatten()).flatten()
+                if idx.numel() == 0:
+                    continue  # no pixel of any tile uses this band on this side: nothing computed
+                if kern is None:
+                    kern = self.kernels(n)  # (T, 2, 3, k, k)
+                k = kern.shape[-1]
+                w = gs.reshape(b * n_t, 1, win, win)[idx]
+                feats = torch.cat([rgb_flat[idx] * w, w], dim=1)  # (M, 4, win, win)
+                fx = torch.fft.rfft2(feats, s=(fs, fs))
+                fk = torch.fft.rfft2(kern[:, side], s=(fs, fs))[idx % n_t]  # (M, 3, ...) per tile
+                prod = torch.cat([fx[:, :3] * fk, fx[:, 3:4] * fk], dim=1)  # (M, 6, ...)
+                out = torch.fft.irfft2(prod, s=(fs, fs))[..., k // 2 : k // 2 + win, k // 2 : k // 2 + win]  # 'same'
+                bw = bucket_weights(sign * float(self.diameters[n]), coc_flat[idx], cfg.occlusion_margin_px)
+                contribs.append(bw.permute(1, 0, 2, 3).unsqueeze(2) * out.unsqueeze(1))  # (M, 3, 6, win, win)
+                indices.append(idx)
+                self.last_convolutions += int(idx.numel())
+        if contribs:
+            acc = acc.index_add(0, torch.cat(indices), torch.cat(contribs))
+        return acc.view(b, n_t, 3, 6, win, win)
+
+    def composite(self, acc: torch.Tensor) -> torch.Tensor:
+        """Buckets ``(B, 3, 6, H, W)`` -> linear RGB ``(B, 3, H, W)``: near over same over far,
+        sum-to-saturation per channel, remaining holes filled by normalising."""
+        color, cover = acc[:, :, :3], acc[:, :, 3:].clamp_min(0.0)
+        out = torch.zeros_like(color[:, 0])
+        taken = torch.zeros_like(out)
+        for k in range(3):
+            a = cover[:, k]
+            room = (1.0 - taken).clamp_min(0.0)
+            frac = torch.minimum(torch.ones_like(a), room / a.clamp_min(_EPS))
+            out = out + color[:, k] * frac
+            taken = taken + a * frac
+        return out / taken.clamp_min(_EPS)
+
+    def forward(self, x: torch.Tensor, return_tiles: bool = False, tile_active: torch.Tensor | None = None) -> torch.Tensor:
+        """``(B, 4, H, W)`` -> ``(B, 3, H, W)`` normalised defocused RGB; with ``return_tiles``
+        each window composited on its own ``(B, tiles * 3, win, win)`` (per-tile-loss ablation)."""
+        cfg = self.config
+        acc = self.tile_accumulators(x, tile_active)  # (B, T, 3, 6, win, win)
+        b, n_t, _, _, win, _ = acc.shape
+        if return_tiles:
+            out = self.composite(acc.view(b * n_t, 3, 6, win, win))
+            return self._encode(out.clamp_min(0.0)).view(b, n_t * 3, win, win)
+        rows, cols, t, t_o = cfg.layout
+        hp, wp = rows * t + 2 * t_o, cols * t + 2 * t_o
+        canvas = acc.new_zeros(b, 18, hp, wp)
+        for i in range(rows):
+            for j in range(cols):
+                canvas[:, :, i * t : i * t + win, j * t : j * t + win] += acc[:, i * cols + j].reshape(b, 18, win, win)
+        canvas = canvas[:, :, t_o : t_o + cfg.image_height, t_o : t_o + cfg.image_width]
+        out = self.composite(canvas.view(b, 3, 6, cfg.image_height, cfg.image_width))
+        return self._encode(out.clamp_min(0.0))
+
+    def tile_targets(self, y: torch.Tensor) -> torch.Tensor:
+        """Cut a target ``(B, 3, H, W)`` into the windows (for the per-tile-loss ablation)."""
+        return tile(y, self.config.layout)
