@@ -13,9 +13,11 @@ The skeleton of the paper, given what a lens blur is made of:
 2. *Tiles with their own weights.* The image is cut into ``tile`` px cores with ``overlap`` px
    of context (as the paper). Each tile owns a learned *pupil* per colour channel and per side
    of the focus plane (in front, behind): a ``pupil_size``^2 grid of log-transmissions over
-   ``[-1.25, 1.25]^2`` aperture radii. This is where the lens is learned: the aperture shape,
-   the cat-eye clipping of that part of the field, a bright rim or centre, per-channel
-   differences. A learned per-channel scale of the CoC diameter models longitudinal chromatic
+   ``[-1.25, 1.25]^2`` aperture radii, the sum of a lens-wide pupil and the tile's own
+   correction (zero at the start; it learns at ``train.tile_lr_scale`` x lr, so a tile that few
+   training pixels reach cannot drift far from what the whole image teaches). This is where
+   the lens is learned: the aperture shape, the cat-eye clipping of that part of the field, a
+   bright rim or centre, per-channel differences. A learned per-channel scale of the CoC diameter models longitudinal chromatic
    aberration.
 3. *C1: the multiplicative CoC gate.* The signed CoC ``c`` (px) of each pixel is split into
    bands by hat functions of ``|c|``: band 0 is ``|c| <= 1`` px (in focus: a point), band
@@ -144,9 +146,11 @@ class LensBokeh(nn.Module):
         self.diameters = band_diameters(self.c_max, cfg.blocks)
         prior = prior_transmission(_prior_shape(cfg), cfg.pupil_size)
         logits = np.log(np.maximum(prior, PUPIL_FLOOR))
-        # (tiles, side [behind, in front], channel, P, P) log-transmissions
-        init = np.broadcast_to(logits, (cfg.num_tiles, 2, 3, cfg.pupil_size, cfg.pupil_size)).copy()
-        self.pupil = nn.Parameter(torch.from_numpy(init).float())
+        # log-transmissions (side [behind, in front], channel, P, P): one lens-wide pupil, plus a
+        # per-tile correction (cat-eye clipping, field-dependent aberrations) that starts at zero
+        init = np.broadcast_to(logits, (2, 3, cfg.pupil_size, cfg.pupil_size)).copy()
+        self.pupil_shared = nn.Parameter(torch.from_numpy(init).float())
+        self.pupil_tile = nn.Parameter(torch.zeros(cfg.num_tiles, 2, 3, cfg.pupil_size, cfg.pupil_size))
         self.log_channel_scale = nn.Parameter(torch.zeros(3))
         rows, cols, t, t_o = cfg.layout
         reach = math.ceil(0.5 * self.c_max * 1.1)  # the largest CoC radius, with room for a learned channel scale
@@ -181,14 +185,15 @@ class LensBokeh(nn.Module):
         h = k // 2
         scale = torch.exp(self.log_channel_scale)  # (3,)
         radius = 0.5 * float(self.diameters[n]) * scale  # (3,) px
-        offs = (torch.arange(SUPERSAMPLE, dtype=torch.float32, device=self.pupil.device) + 0.5) / SUPERSAMPLE - 0.5
-        pos = (torch.arange(-h, h + 1, dtype=torch.float32, device=self.pupil.device)[:, None] + offs).reshape(-1)
+        device = self.pupil_shared.device
+        offs = (torch.arange(SUPERSAMPLE, dtype=torch.float32, device=device) + 0.5) / SUPERSAMPLE - 0.5
+        pos = (torch.arange(-h, h + 1, dtype=torch.float32, device=device)[:, None] + offs).reshape(-1)
         m = pos.numel()
         u = pos[None, None, :] / radius[:, None, None] / PUPIL_EXTENT  # (3, 1, m), in grid units [-1, 1]
         v = pos[None, :, None] / radius[:, None, None] / PUPIL_EXTENT  # rows go down; grid rows too
         grid = torch.stack([u.expand(3, m, m), v.expand(3, m, m)], dim=-1)  # (3, m, m, 2)
         t_count = cfg.num_tiles
-        pup = torch.exp(self.pupil).reshape(t_count * 2, 3, cfg.pupil_size, cfg.pupil_size)
+        pup = torch.exp(self.pupil_shared[None] + self.pupil_tile).reshape(t_count * 2, 3, cfg.pupil_size, cfg.pupil_size)
         pup = pup.permute(1, 0, 2, 3)  # (3, T*2, P, P): one grid per channel
         samples = F.grid_sample(pup, grid, mode="bilinear", padding_mode="zeros", align_corners=True)  # (3, T*2, m, m)
         kern = samples.reshape(3, t_count * 2, k, SUPERSAMPLE, k, SUPERSAMPLE).mean(dim=(3, 5))

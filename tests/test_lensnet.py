@@ -122,3 +122,12 @@ def test_trains_towards_a_lens_it_was_not_started_from(tmp_path):
         opt.step()
         losses.append(loss.item())
     assert np.isfinite(losses).all() and losses[-1] < 0.6 * losses[0], losses
+
+
+def test_tile_corrections_learn_slower_than_the_lens_wide_pupil():
+    from neuralbokeh.training.loop import param_groups
+
+    m = _model()
+    scale = {id(p): g["lr_scale"] for g in param_groups(m, "fan_in", 0.25) for p in g["params"]}
+    assert scale[id(m.pupil_tile)] == 0.25 and scale[id(m.pupil_shared)] == 1.0
+    assert float(m.pupil_tile.abs().max()) == 0.0  # every tile starts as the lens-wide pupil

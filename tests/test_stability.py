@@ -29,7 +29,7 @@ def _random_checkpoint(path, height, width, architecture, blocks=3):
         for name, p in model.named_parameters():
             if name.startswith("c2.") or ".conv_b." in name:
                 p.copy_(0.3 * torch.randn_like(p) / max(1, p[0].numel()) ** 0.5)
-            elif name == "pupil":
+            elif name == "pupil_tile":
                 p.add_(1.5 * torch.randn_like(p))
     save_checkpoint(path, {"model_config": cfg.to_dict(), "model_state": model.state_dict(),
                            "lens": {"focal_length_mm": 50.0, "f_number": 2.0, "sensor_width_mm": 36.0},

@@ -72,6 +72,8 @@ class TrainSection:
             so a 41x41 kernel's output would move ~1700x more than a 1x1 weight's; dividing by
             the fan-in gives every layer the same output step (as muP prescribes for Adam).
             ``"none"``: one learning rate for all (measured: diverges at N = 20 with lr 1e-3).
+        tile_lr_scale: the lens network's per-tile pupil corrections learn at this fraction of
+            ``lr`` (the lens-wide pupil at ``lr``), in (0, 1].
         lr_schedule: ``"cosine"`` (to 10% of lr) or ``"constant"``, after ``warmup_steps``.
         warmup_steps: linear warm-up steps.
         grad_clip: clip the gradient norm to this value (0 = off).
@@ -89,6 +91,7 @@ class TrainSection:
     lr: float = 2e-3
     lr_schedule: str = "cosine"
     lr_kernel_scaling: str = "fan_in"
+    tile_lr_scale: float = 0.25
     warmup_steps: int = 20
     grad_clip: float = 1.0
     loss: str = "image"
@@ -129,6 +132,8 @@ class TrainConfig:
         for name in ("steps", "batch_size", "eval_every", "checkpoint_every", "max_nonfinite"):
             if getattr(t, name) < 1:
                 raise ValueError(f"train.{name} must be >= 1, got {getattr(t, name)}")
+        if not (0.0 < t.tile_lr_scale <= 1.0):
+            raise ValueError(f"train.tile_lr_scale must be in (0, 1], got {t.tile_lr_scale}")
         if t.lr <= 0 or t.grad_clip < 0 or t.warmup_steps < 0 or t.threads < 0:
             raise ValueError("train.lr must be > 0 and train.grad_clip, warmup_steps, threads >= 0")
 

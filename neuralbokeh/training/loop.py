@@ -84,14 +84,17 @@ def compute_loss(model: torch.nn.Module, x: torch.Tensor, y: torch.Tensor, kind:
     return F.mse_loss(model(x), y)
 
 
-def param_groups(model: NeuralBokeh, scaling: str) -> list[dict[str, Any]]:
-    """Adam parameter groups, each with an ``lr_scale``: per-channel k x k kernels at ``1 / k^2``
-    with ``scaling = "fan_in"`` (see ``TrainSection.lr_kernel_scaling``), everything else at 1."""
+def param_groups(model: torch.nn.Module, scaling: str, tile_lr_scale: float = 1.0) -> list[dict[str, Any]]:
+    """Adam parameter groups, each with an ``lr_scale``: the paper network's per-channel k x k
+    kernels at ``1 / k^2`` with ``scaling = "fan_in"`` (see ``TrainSection.lr_kernel_scaling``),
+    the lens network's per-tile pupil corrections at ``tile_lr_scale``, everything else at 1."""
     groups: dict[float, list[torch.nn.Parameter]] = {}
     for name, p in model.named_parameters():
         scale = 1.0
         if scaling == "fan_in" and name.endswith("conv.weight") and p.ndim == 4:
             scale = 1.0 / (p.shape[-1] * p.shape[-2])
+        elif name == "pupil_tile":
+            scale = tile_lr_scale
         groups.setdefault(scale, []).append(p)
     return [{"params": ps, "lr_scale": s} for s, ps in sorted(groups.items(), reverse=True)]
 
@@ -243,7 +246,7 @@ def _train(
 
     torch.manual_seed(t.seed)
     model = build_model(mcfg).to(device)
-    optimizer = torch.optim.Adam(param_groups(model, t.lr_kernel_scaling), lr=t.lr)
+    optimizer = torch.optim.Adam(param_groups(model, t.lr_kernel_scaling, t.tile_lr_scale), lr=t.lr)
     start, skipped = 0, 0
     if resume:
         ck = load_checkpoint(resume, map_location=device)
