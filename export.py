@@ -12,25 +12,29 @@ import argparse
 import logging
 import sys
 
+from neuralbokeh.cli import HelpFormatter, run_cli
 from neuralbokeh.export.exporter import export_checkpoint
+from neuralbokeh.export.lens_graph import LENS_DEFAULT_KERNELS
 from neuralbokeh.export.lowrank import DEFAULT_KERNELS
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
     p.add_argument("checkpoint", help="checkpoint written by train.py")
     p.add_argument("--out", required=True, help="ONNX file to write")
-    p.add_argument("--opset", type=int, default=17, help="ONNX opset (>= 17; default 17)")
+    p.add_argument("--opset", type=int, default=None,
+                   help="ONNX opset (default and minimum: 18 for the lens network, 17 for the paper network)")
     p.add_argument("--fp16", action="store_true",
                    help="float16 convolutions (paper network: weights and trunk, C2, tanh and head stay float32; "
                         "lens network: the band convolutions)")
-    p.add_argument("--kernels", default=DEFAULT_KERNELS,
-                   help="paper network: direct | lowrank:R | auto:EPS (per convolution the smallest separable rank whose "
-                        f"effect on the model's output is within EPS / sqrt(#convolutions); default {DEFAULT_KERNELS}); "
-                        "the lens network always exports its kernels direct")
+    p.add_argument("--kernels", default=None,
+                   help=f"lens network: direct | multires:PX (bands convolved on grids 2, 4 or 8 times coarser where their "
+                        f"CoC stays >= PX coarse px wide; default {LENS_DEFAULT_KERNELS}). Paper network: direct | lowrank:R | "
+                        "auto:EPS (per convolution the smallest separable rank whose effect on the model's output is within "
+                        f"EPS / sqrt(#convolutions); default {DEFAULT_KERNELS})")
     p.add_argument("--tolerance", type=float, help="max abs parity error, normalised units (default 1e-4; 2e-2 with --fp16)")
     p.add_argument("--threads", type=int, default=None, help="onnxruntime threads for the parity check")
-    p.add_argument("-v", "--verbose", action="store_true")
+    p.add_argument("-v", "--verbose", action="store_true", help="info logging, and tracebacks with errors")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     try:
@@ -39,16 +43,18 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit(f"error: {e}")
     meta = report["metadata"]
     ranks = [r for r in meta["kernel_ranks"].values() if r]
+    reduced = {k: v["scale"] for k, v in report["kernels"].items() if v.get("scale", 1) > 1}
     print(f"model      {meta['image_size']['width']}x{meta['image_size']['height']} px, N = {meta['blocks']}, "
           f"{meta['num_tiles']} tiles, max CoC {meta['max_coc_px']:.2f} px, {'fp16' if meta['fp16'] else 'fp32'}, opset {meta['opset']}")
     print(f"kernels    {meta['kernels']}: {len(ranks)} of {len(meta['kernel_ranks'])} convolutions separable"
-          + (f" (ranks {min(ranks)}-{max(ranks)})" if ranks else ""))
+          + (f" (ranks {min(ranks)}-{max(ranks)})" if ranks else "")
+          + (f"; {len(reduced)} bands on coarser grids (x{min(reduced.values())}-x{max(reduced.values())})" if reduced else ""))
     for case, err in report["parity"].items():
         print(f"parity     {case:<20} max abs {err:.2e} (tolerance {report['tolerance']:g})"
-              f"   low-rank vs trained {report['approximation'][case]:.2e}")
+              f"   approximation vs trained {report['approximation'][case]:.2e}")
     print(f"written    {report['path']}")
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_cli(main))

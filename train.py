@@ -11,25 +11,27 @@ import logging
 import os
 import sys
 
+from neuralbokeh.cli import HelpFormatter, run_cli
 from neuralbokeh.training import load_config, train
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
     p.add_argument("config", help="TOML config (see configs/)")
     p.add_argument("overrides", nargs="*", help="section.key=value, e.g. train.steps=50")
     p.add_argument("--resume", help="checkpoint to continue from (written by this tool with the same config)")
     p.add_argument("--stop-at", type=int, help="stop with a checkpoint after this step (continue with --resume)")
     p.add_argument("--time-limit", type=float, help="stop with a final evaluation and checkpoint after this many minutes")
-    p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
-    args = p.parse_args(argv)
+    p.add_argument("--overwrite", action="store_true", help="start afresh in a train.out_dir that already holds a run")
+    p.add_argument("-v", "--verbose", action="store_true", help="debug logging, and tracebacks with errors")
+    args = p.parse_intermixed_args(argv)  # overrides may follow options
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     try:
         cfg = load_config(args.config, args.overrides)
     except (FileNotFoundError, ValueError, TypeError) as e:
         raise SystemExit(f"error: {e}")
     time_limit = None if args.time_limit is None else 60.0 * args.time_limit
-    summary = train(cfg, resume=args.resume, stop_at=args.stop_at, time_limit_s=time_limit)
+    summary = train(cfg, resume=args.resume, stop_at=args.stop_at, time_limit_s=time_limit, overwrite=args.overwrite)
     if int(os.environ.get("RANK", "0")) != 0:
         return 0
     m = summary["metrics"]
@@ -54,4 +56,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_cli(main))

@@ -55,7 +55,7 @@ def make_checkpoint(data: Path, out: Path, minutes: float) -> Path:
     subprocess.run([sys.executable, "-m", "data_tools.synth", "--out", str(data), "--scenes", "24", "--size", "192", "192",
                     "--slices", "4", "--aperture", "polygon:7", "--cat-eye", "0.6", "--f-number", "1.4", "--seed", "41",
                     "--workers", "2"], check=True, cwd=ROOT)
-    subprocess.run([sys.executable, "train.py", "configs/quickstart.toml", f"data.roots=['{data}']", "data.test_fraction=0.2",
+    subprocess.run([sys.executable, "train.py", "configs/quickstart.toml", "--overwrite", f"data.roots=['{data}']", "data.test_fraction=0.2",
                     "model.tile=96", "model.overlap=24", "train.steps=100000", "train.lr=1e-3", "model.architecture='paper'", "train.lr_schedule='constant'",
                     "train.eval_every=100000", "train.checkpoint_every=50", f"train.out_dir='{out}'",
                     "--time-limit", str(minutes)], check=True, cwd=ROOT)

@@ -39,7 +39,7 @@ def main() -> None:
     run("-m", "data_tools.mitsuba", "--out", str(args.data), "--scenes", str(args.scenes), "--size", str(args.size),
         str(args.size), "--slices", "4", "--aperture", "polygon:7", "--cat-eye", "0.6", "--focal-length", "85",
         "--f-number", "1.4", "--spp", str(args.spp), "--seed", "5")
-    run("train.py", "configs/quickstart.toml", f"data.roots=['{args.data}']", "data.test_fraction=0.25",
+    run("train.py", "configs/quickstart.toml", "--overwrite", f"data.roots=['{args.data}']", "data.test_fraction=0.25",
         f"model.tile={args.size // 4}", f"model.overlap={args.size // 8}", "train.steps=1000000",
         "train.lr_schedule='constant'", "train.eval_every=1000000", "train.checkpoint_every=200",
         f"train.out_dir='{args.out}'", "--time-limit", str(args.minutes))

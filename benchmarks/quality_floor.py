@@ -93,7 +93,7 @@ def main() -> None:
         ])
 
     for name in [] if args.baselines_only else args.variants:
-        rows.append((name, train(config(name), time_limit_s=60.0 * args.minutes)))
+        rows.append((name, train(config(name), time_limit_s=60.0 * args.minutes, overwrite=True)))
     base = baselines(config("full"))
     gauss, oracle = base["gaussian"][0], base["oracle"][0]
     print(f"\nheld-out PSNR dB / SSIM after {args.minutes:g} min each ({args.scenes} scenes x 4 slices, {args.size} px, "

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from neuralbokeh.export.exporter import export_checkpoint, probe_inputs, session
+from neuralbokeh.export.exporter import export_checkpoint, probe_inputs, run_session, session
 
 
 def main() -> None:
@@ -34,7 +34,7 @@ def main() -> None:
                 meta = rep["metadata"]
                 sess = session(str(path), args.threads)
                 for name, (aif, coc) in probe_inputs(meta["image_size"]["height"], meta["image_size"]["width"]).items():
-                    out = sess.run(["defocus"], {"aif": aif, "coc": coc, "tile_active": np.ones(meta["num_tiles"], bool)})[0]
+                    out = run_session(sess, aif, coc)
                     rows.setdefault(name, []).extend([rep["parity"][name], float(np.abs(out).max())])
             print(f"\n{ckpt}: {meta['image_size']['width']}x{meta['image_size']['height']}, N = {meta['blocks']}, "
                   f"{meta['num_tiles']} tiles")

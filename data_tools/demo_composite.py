@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from neuralbokeh.cli import HelpFormatter, run_cli
 from neuralbokeh.data import load_scene
 from neuralbokeh.io import write_image
 
@@ -24,11 +25,12 @@ from .procedural import SceneParams, composite_sharp, make_layers
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
     p.add_argument("--scene", type=Path, required=True, help="a scene folder of a dataset")
     p.add_argument("--slice", type=int, default=0, help="which defocused slice is the plate")
-    p.add_argument("--out", type=Path, required=True)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", type=Path, required=True, help="folder to write plate.exr, render.exr, depth.exr, alpha.exr into")
+    p.add_argument("--seed", type=int, default=0, help="seed of the procedural CG layer")
+    p.add_argument("-v", "--verbose", action="store_true", help="tracebacks with errors")
     args = p.parse_args(argv)
     try:
         scene = load_scene(args.scene)
@@ -57,4 +59,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_cli(main))

@@ -26,6 +26,7 @@ from tqdm import tqdm
 
 from neuralbokeh import __version__
 from neuralbokeh.apertures import ApertureModel, parse_aperture
+from neuralbokeh.cli import HelpFormatter, run_cli
 from neuralbokeh.data import FocalStackDataset, write_scene
 from neuralbokeh.io import read_image
 from neuralbokeh.optics import ThinLens, blocks_for_coc, focus_sweep_m
@@ -77,7 +78,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="python -m data_tools.synth",
         description="Write a synthetic focal-stack dataset (AIF, depth, defocus and CoC per slice).",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        formatter_class=HelpFormatter,
     )
     p.add_argument("--out", required=True, type=Path, help="dataset folder (created; existing scenes are kept)")
     p.add_argument("--scenes", type=int, default=16, help="number of scenes")
@@ -160,4 +161,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_cli(main))

@@ -32,6 +32,7 @@ import numpy as np
 import OpenImageIO as oiio
 from tqdm import tqdm
 
+from .cli import HelpFormatter, run_cli
 from .io import read_image, write_image
 from .masks import erode, gaussian_blur
 from .runtime import BokehModel
@@ -143,7 +144,7 @@ def composite_frame(model: BokehModel, plate: np.ndarray, render: np.ndarray, de
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m neuralbokeh.composite", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+                                formatter_class=HelpFormatter)
     p.add_argument("--model", required=True, help="ONNX model written by export.py")
     p.add_argument("--plate", required=True, help="the photograph (background), linear RGB")
     p.add_argument("--render", required=True, help="all-in-focus CG render, linear RGB")
@@ -160,6 +161,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--clamp-coc", action="store_true", help="clamp CoCs beyond the model's range (warns) instead of failing")
     p.add_argument("--clip-ldr", action="store_true", help="clip values outside [0, 1] when writing PNG")
     p.add_argument("--no-skip", action="store_true", help="run the network on in-focus tiles too")
+    p.add_argument("-v", "--verbose", action="store_true", help="tracebacks with errors")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stdout)
     try:
@@ -202,4 +204,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_cli(main))

@@ -308,3 +308,35 @@ class FocalStackDataset(torch.utils.data.Dataset):
             "slice": k,
             "focus_m": float(sl["focus_m"]),
         }
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m neuralbokeh.data check ROOT [ROOT ...]``: validate datasets (see ``dataset_check``)."""
+    import argparse
+    import sys
+    import time
+
+    from .cli import HelpFormatter
+    from .dataset_check import check_dataset
+
+    p = argparse.ArgumentParser(prog="python -m neuralbokeh.data", description=main.__doc__, formatter_class=HelpFormatter)
+    sub = p.add_subparsers(dest="command", required=True)
+    check = sub.add_parser("check", help="read every file of every scene and check it against scene.json",
+                           formatter_class=HelpFormatter)
+    check.add_argument("roots", nargs="+", help="dataset folders (each holding scene folders)")
+    check.add_argument("-v", "--verbose", action="store_true", help="tracebacks with errors")
+    args = p.parse_args(argv)
+    t = time.perf_counter()
+    problems = check_dataset(args.roots, progress=sys.stderr.isatty())
+    for line in problems:
+        print(line)
+    n = len(find_scenes(args.roots))
+    print(f"{n} scene(s) checked in {time.perf_counter() - t:.1f} s: "
+          + (f"{len(problems)} problem(s)" if problems else "no problems"))
+    return 1 if problems else 0
+
+
+if __name__ == "__main__":
+    from .cli import run_cli
+
+    raise SystemExit(run_cli(main))

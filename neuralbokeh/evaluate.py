@@ -9,8 +9,10 @@ PyTorch) and the baselines of ``neuralbokeh.render.baselines``: ``identity`` (th
 ``buckets`` (the light-field patent's near/mid/far gather with sum-to-saturation), ``pyramid`` and
 ``tensor`` (Kosloff and Barsky's Gaussian pyramid spreading and tensor filter), ``lenstrace``
 (Lee, Eisemann and Seidel's layered image-space ray tracing; no spherical aberration, since the
-data has none) and ``scatter`` (the reference renderer with the data's aperture: with synthetic data made by the
-same renderer this is an oracle, the best any method fed AIF + CoC can do).
+data has none) and ``scatter`` (the reference renderer with the data's aperture, fed the same AIF +
+CoC as every other method: the data's lens without learning. It is not a bound: it cannot see what
+foregrounds hide in the AIF, and on data rendered layer by layer, identity or a learned model can
+beat it on some metrics).
 
 Per method and held-out sample: the metrics of ``neuralbokeh.metrics`` (PSNR/SSIM in linear
 light and tone-mapped sRGB, HDR-FLIP) and the wall time per megapixel, the median of
@@ -33,9 +35,12 @@ from typing import Any
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from .apertures import ApertureModel
+from .cli import HelpFormatter, run_cli
 from .data import FocalStackDataset
+from .dataset_check import require_sound
 from .io import write_image, write_json
 from .metrics import image_metrics, pareto_front, tonemap_srgb
 from .normalization import Normalization
@@ -80,16 +85,24 @@ def baseline_methods(names: list[str], aperture: ApertureModel | None) -> dict[s
     return {n: table[n] for n in names}
 
 
-def model_method(path: Path, threads: int) -> Method:
-    """A trained model: ``.onnx`` (onnxruntime, in-focus tiles skipped) or a ``.pt`` checkpoint."""
+def model_method(path: Path, threads: int, size: tuple[int, int] | None = None) -> Method:
+    """A trained model: ``.onnx`` (onnxruntime, in-focus tiles skipped) or a ``.pt`` checkpoint.
+
+    ``size`` ``(H, W)``: the data's image size; a model built for another size is refused here,
+    before any work."""
     if path.suffix == ".onnx":
         from .runtime import BokehModel
 
         m = BokehModel(path, threads=threads)
+        if size is not None and (m.height, m.width) != tuple(size):
+            raise ValueError(f"{path} is for {m.width}x{m.height} images, the data is {size[1]}x{size[0]}")
         return lambda aif, coc: m.render_coc(aif, coc)
     from .training.checkpoint import load_model
 
     model, ckpt = load_model(path)
+    cfg = model.config
+    if size is not None and (cfg.image_height, cfg.image_width) != tuple(size):
+        raise ValueError(f"{path} is for {cfg.image_width}x{cfg.image_height} images, the data is {size[1]}x{size[0]}")
     norm, scale = Normalization.from_dict(ckpt["normalization"]), float(ckpt["coc_scale_px"])
 
     def run(aif: np.ndarray, coc: np.ndarray) -> np.ndarray:
@@ -98,6 +111,34 @@ def model_method(path: Path, threads: int) -> Method:
             y = model(torch.from_numpy(x[None]).float())[0].double().numpy()
         return norm.decode(y).transpose(1, 2, 0)
     return run
+
+
+def split_of_models(models: list[Path], test_fraction: float | None, split_seed: int | None) -> tuple[float, int]:
+    """The scene split to score: the one given, else the training run's (``train_config`` of a
+    ``.pt`` checkpoint, ``data_split`` of an exported model), so that training scenes are not
+    scored as held out by accident; else (0.2, 0). A given value that differs from a model's
+    training split is logged as a warning."""
+    recorded = None
+    for path in models:
+        split = None
+        if path.suffix == ".onnx" and path.is_file():
+            import onnx
+
+            meta = {p.key: p.value for p in onnx.load(str(path), load_external_data=False).metadata_props}
+            split = json.loads(meta.get("neuralbokeh", "{}")).get("data_split")
+        elif path.is_file():
+            from .training.checkpoint import load_checkpoint
+
+            data = load_checkpoint(path).get("train_config", {}).get("data")
+            split = {k: data[k] for k in ("test_fraction", "split_seed")} if data else None
+        if split:
+            recorded = recorded or (float(split["test_fraction"]), int(split["split_seed"]))
+    fraction = test_fraction if test_fraction is not None else recorded[0] if recorded else 0.2
+    seed = split_seed if split_seed is not None else recorded[1] if recorded else 0
+    if recorded and (fraction, seed) != recorded:
+        log.warning("scoring with test_fraction %s, split_seed %s; the model was trained with %s, %s: some scored "
+                    "scenes may be training scenes", fraction, seed, *recorded)
+    return fraction, seed
 
 
 def _median_ms(fn: Callable[[], Any], repeats: int) -> tuple[float, Any]:
@@ -109,12 +150,15 @@ def _median_ms(fn: Callable[[], Any], repeats: int) -> tuple[float, Any]:
     return statistics.median(times), out
 
 
-def evaluate(methods: dict[str, Method], samples: list[dict], repeats: int = 3) -> dict[str, Any]:
+def evaluate(methods: dict[str, Method], samples: list[dict], repeats: int = 3, progress: bool = False) -> dict[str, Any]:
     """Metrics and time per method; ``samples`` are linear items of a ``FocalStackDataset``
-    (``normalize=False``). Returns ``{"methods": {name: {...}}, "predictions": {name: [...]}}``."""
+    (``normalize=False``). Returns ``{"methods": {name: {...}}, "predictions": {name: [...]}}``.
+    ``progress``: a tqdm bar over (method, sample) runs (the CLI's)."""
     results, predictions = {}, {}
+    bar = tqdm(total=len(methods) * len(samples), desc="evaluate", unit="run", disable=not progress)
     for name, fn in methods.items():
         per, preds = [], []
+        bar.set_postfix(method=name)
         for it in samples:
             aif = it["aif"].numpy().transpose(1, 2, 0).astype(np.float64)
             coc = it["coc"][0].numpy().astype(np.float64)
@@ -129,12 +173,14 @@ def evaluate(methods: dict[str, Method], samples: list[dict], repeats: int = 3) 
             m["sample"] = f"{it['scene']}#{it['slice']}"
             per.append(m)
             preds.append(pred)
+            bar.update()
         keys = [k for k in per[0] if k not in ("sample", "min_value")]
         summary = {k: float(np.mean([p[k] for p in per])) for k in keys}
         summary["ms_per_mp"] = float(np.median([p["ms_per_mp"] for p in per]))
         results[name] = {**summary, "per_sample": per}
         predictions[name] = preds
         log.info("%s: %s", name, {k: round(v, 4) for k, v in summary.items()})
+    bar.close()
     return {"methods": results, "predictions": predictions}
 
 
@@ -150,7 +196,8 @@ def write_report(out: Path, result: dict[str, Any], samples: list[dict], info: d
     names = list(methods)
     written = [write_json(out / "report.json", {"info": info, "methods": methods})]
     cols = ["psnr_linear", "ssim_linear", "psnr_srgb", "ssim_srgb", "flip_hdr", "ms_per_mp"]
-    lines = [f"# Evaluation on {info['samples']} held-out samples ({info['data']})", "",
+    what = {"test": "held-out", "train": "training", "all": "all"}.get(info.get("split", "test"), "")
+    lines = [f"# Evaluation on {info['samples']} {what} samples ({info['data']})", "",
              f"Threads: {info['threads']}; time: median of {info['repeats']} runs per sample, median over samples.", "",
              "| method | PSNR lin dB | SSIM lin | PSNR sRGB dB | SSIM sRGB | FLIP | ms/MP |", "|---|---|---|---|---|---|---|"]
     for n in names:
@@ -163,19 +210,21 @@ def write_report(out: Path, result: dict[str, Any], samples: list[dict], info: d
 
     points = [(max(methods[n]["ms_per_mp"], 1e-3), methods[n]["flip_hdr"]) for n in names]
     front = set(pareto_front(points))
-    fig, ax = plt.subplots(figsize=(6, 4))
-    for i, (n, (t, e)) in enumerate(zip(names, points)):
-        ax.scatter([t], [e], marker="o" if i in front else "x", s=60)
-        ax.annotate(n, (t, e), textcoords="offset points", xytext=(5, 5), fontsize=8)
+    fig, ax = plt.subplots(figsize=(7.5, 4.5))
+    markers = "osD^v<>ph*"
+    for i, (n, (t, e)) in enumerate(zip(names, points)):  # named in the legend: labels never overlap
+        color = plt.get_cmap("tab10")(i % 10)
+        ax.scatter([t], [e], marker=markers[i % len(markers)], s=50, label=n + (" (Pareto)" if i in front else ""),
+                   facecolors=color if i in front else "none", edgecolors=color)
     fr = sorted(points[i] for i in front)
-    ax.plot([p[0] for p in fr], [p[1] for p in fr], "--", lw=1, label="Pareto front")
+    ax.plot([p[0] for p in fr], [p[1] for p in fr], "--", lw=1, color="grey", label="Pareto front")
     ax.set_xscale("log")
     ax.set_xlabel("wall time per megapixel (ms, log)")
     ax.set_ylabel("mean HDR-FLIP (lower is better)")
-    ax.legend()
+    ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.02, 0.5), frameon=False)
     fig.tight_layout()
     tmp = out / ".error_vs_runtime.png.tmp.png"
-    fig.savefig(tmp, dpi=120)
+    fig.savefig(tmp, dpi=120, bbox_inches="tight")
     plt.close(fig)
     tmp.replace(out / "error_vs_runtime.png")
     written.append(out / "error_vs_runtime.png")
@@ -183,52 +232,91 @@ def write_report(out: Path, result: dict[str, Any], samples: list[dict], info: d
     ref = names[0]
     order = np.argsort([p["flip_hdr"] for p in methods[ref]["per_sample"]])
     for label, idx in (("median", int(order[len(order) // 2])), ("worst", int(order[-1]))):
-        it = samples[idx]
-        aif = it["aif"].numpy().transpose(1, 2, 0)
-        gt = it["defocus"].numpy().transpose(1, 2, 0)
-        preds = [np.maximum(result["predictions"][n][idx], 0.0) for n in names]
-        top = np.concatenate([tonemap_srgb(a) for a in (aif, gt, *preds)], axis=1)
-        errs = [np.zeros_like(aif), np.zeros_like(aif)] + [np.clip(4 * np.abs(tonemap_srgb(p) - tonemap_srgb(gt)), 0, 1)
-                                                          for p in preds]
-        grid = np.concatenate([top, np.concatenate(errs, axis=1)], axis=0)
-        path = out / f"grid_{label}.png"
-        write_image(path, np.round(np.clip(grid, 0, 1) * 255).astype(np.uint8), pixel_type="uint8")
+        path = _grid(plt, out, label, ref, samples[idx], names, result, idx)
         written.append(path)
     return written
 
 
+ERROR_GAIN = 4.0  # error maps show ERROR_GAIN x |sRGB difference|: white = a difference of 1 / ERROR_GAIN
+
+
+def _grid(plt: Any, out: Path, label: str, ref: str, it: dict, names: list[str], result: dict[str, Any], idx: int) -> Path:
+    """One titled image grid: AIF | ground truth | each method (PSNR, FLIP) over the error maps."""
+    aif = it["aif"].numpy().transpose(1, 2, 0)
+    gt = it["defocus"].numpy().transpose(1, 2, 0)
+    cols = ["all-in-focus input", "ground truth"] + names
+    images = [aif, gt] + [np.maximum(result["predictions"][n][idx], 0.0) for n in names]
+    h, w = aif.shape[:2]
+    fig, axes = plt.subplots(2, len(cols), figsize=(1.9 * len(cols), 1.9 * 2 * h / w + 0.9), squeeze=False)
+    for j, (title, img) in enumerate(zip(cols, images)):
+        top, bottom = axes[0, j], axes[1, j]
+        top.imshow(np.clip(tonemap_srgb(img), 0, 1))
+        if j >= 2:
+            m = result["methods"][title]["per_sample"][idx]
+            title = f"{title}\nPSNR {m['psnr_srgb']:.2f}  FLIP {m['flip_hdr']:.3f}"
+            err = np.clip(ERROR_GAIN * np.abs(tonemap_srgb(img) - tonemap_srgb(gt)), 0, 1)
+            bottom.imshow(err)
+        else:
+            bottom.axis("off")
+        top.set_title(title, fontsize=7)
+        for a in (top, bottom):
+            a.set_xticks([])
+            a.set_yticks([])
+    axes[0, 0].set_ylabel("tone-mapped sRGB", fontsize=7)
+    axes[1, min(2, len(cols) - 1)].set_ylabel(f"|error| x {ERROR_GAIN:g}\n(white = {1 / ERROR_GAIN:g} sRGB)", fontsize=7)
+    fig.suptitle(f"{label} sample by {ref}'s HDR-FLIP: {it['scene']} slice {it['slice']} (PSNR: tone-mapped sRGB, dB; FLIP: HDR-FLIP)", fontsize=8)
+    fig.tight_layout()
+    path = out / f"grid_{label}.png"
+    tmp = out / f".grid_{label}.png.tmp.png"
+    fig.savefig(tmp, dpi=130)
+    plt.close(fig)
+    tmp.replace(path)
+    return path
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m neuralbokeh.evaluate", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--data", type=Path, required=True, help="dataset folder")
+                                formatter_class=HelpFormatter)
+    p.add_argument("--data", type=Path, required=True, help="dataset folder (checked whole before anything runs)")
     p.add_argument("--models", type=Path, nargs="*", default=[], help=".onnx files or .pt checkpoints")
     p.add_argument("--baselines", default="all", help="'all', 'none' or a comma list of " + ", ".join(BASELINES))
-    p.add_argument("--out", type=Path, required=True)
-    p.add_argument("--test-fraction", type=float, default=0.2)
-    p.add_argument("--split-seed", type=int, default=0)
-    p.add_argument("--samples", type=int, default=0, help="evaluate the first N held-out samples (0: all)")
-    p.add_argument("--repeats", type=int, default=3)
-    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--out", type=Path, required=True, help="report folder (report.json, report.md, plots, image grids)")
+    p.add_argument("--split", choices=("test", "train", "all"), default="test",
+                   help="which scenes to score: the held-out ones, the training ones or the whole dataset")
+    p.add_argument("--test-fraction", type=float, default=None,
+                   help="share of the scenes held out (default: the training run's, from the first model that records "
+                        "it, else 0.2)")
+    p.add_argument("--split-seed", type=int, default=None, help="seed of the scene split (default: the training run's, else 0)")
+    p.add_argument("--samples", type=int, default=0, help="evaluate the first N samples of the split (0: all)")
+    p.add_argument("--repeats", type=int, default=3, help="timed runs per method and sample (median)")
+    p.add_argument("--threads", type=int, default=2, help="torch and onnxruntime threads")
+    p.add_argument("-v", "--verbose", action="store_true", help="tracebacks with errors")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stdout)
     torch.set_num_threads(args.threads)
     try:
-        ds = FocalStackDataset(args.data, "test", args.test_fraction, args.split_seed, normalize=False)
+        require_sound(args.data)
+        test_fraction, split_seed = split_of_models(args.models, args.test_fraction, args.split_seed)
+        ds = FocalStackDataset(args.data, args.split, test_fraction if args.split != "all" else 0.0, split_seed, normalize=False)
         if len(ds) == 0:
-            raise ValueError(f"{args.data}: no held-out samples with test_fraction {args.test_fraction}")
+            raise ValueError(f"{args.data}: no samples in split {args.split!r} with test_fraction {test_fraction}")
         n = len(ds) if args.samples <= 0 else min(args.samples, len(ds))
         samples = [ds[i] for i in range(n)]
         apertures = {json.dumps(m["aperture"], sort_keys=True) for m in ds.metas}
         aperture = ApertureModel.from_dict(ds.metas[0]["aperture"]) if len(apertures) == 1 and ds.metas[0]["aperture"] else None
         names = [] if args.baselines == "none" else list(BASELINES) if args.baselines == "all" else args.baselines.split(",")
-        methods = {str(m.name): model_method(m, args.threads) for m in args.models}
+        size = tuple(samples[0]["aif"].shape[-2:])
+        methods = {str(m.name): model_method(m, args.threads, size) for m in args.models}
         methods.update(baseline_methods(names, aperture))
         if not methods:
             raise ValueError("nothing to evaluate: give --models and/or --baselines")
     except (FileNotFoundError, ValueError) as e:
         raise SystemExit(f"error: {e}")
-    result = evaluate(methods, samples, args.repeats)
-    info = {"data": str(args.data), "samples": n, "threads": args.threads, "repeats": args.repeats,
+    log.info("scoring %d sample(s) of split %r (test_fraction %s, split_seed %d) with %d method(s)", n, args.split,
+             test_fraction, split_seed, len(methods))
+    result = evaluate(methods, samples, args.repeats, progress=True)
+    info = {"data": str(args.data), "split": args.split, "test_fraction": test_fraction, "split_seed": split_seed,
+            "samples": n, "threads": args.threads, "repeats": args.repeats,
             "aperture": ds.metas[0]["aperture"] if aperture else None}
     for path in write_report(args.out, result, samples, info):
         log.info("wrote %s", path)
@@ -237,4 +325,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_cli(main))

@@ -113,6 +113,41 @@ def bucket_weights(band_coc: float, receiver_coc: torch.Tensor, margin: float) -
     return torch.stack([near, 1.0 - near - far, far])
 
 
+def reduction_matrix(k: int, s: int, dtype: torch.dtype = torch.float64, device: torch.device | None = None) -> torch.Tensor:
+    """``(k_s, k)`` weights that bin a ``k``-tap kernel (centred) into taps ``s`` px apart.
+
+    Tap ``J`` of the reduced kernel takes the offsets ``o`` with ``|o - s J| < s / 2`` whole and
+    those at exactly ``s / 2`` by half, so the reduced kernel keeps the sum and the centroid.
+    """
+    h = k // 2
+    j_max = int(math.floor((h + s / 2) / s))
+    o = torch.arange(-h, h + 1, dtype=dtype, device=device)
+    centres = s * torch.arange(-j_max, j_max + 1, dtype=dtype, device=device)
+    dist = (o[None, :] - centres[:, None]).abs()
+    return torch.where(dist < s / 2, 1.0, torch.where(dist == s / 2, 0.5, 0.0)).to(dtype)
+
+
+def reduce_kernel(kernel: torch.Tensor, s: int) -> torch.Tensor:
+    """A kernel ``(..., k, k)`` for a grid ``s`` times coarser: ``(..., k_s, k_s)``, same sum."""
+    if s == 1:
+        return kernel
+    r = reduction_matrix(kernel.shape[-1], s, kernel.dtype, kernel.device)
+    return r @ kernel @ r.T
+
+
+def band_scales(diameters: np.ndarray, min_px: float) -> dict[int, int]:
+    """Reduced-resolution factor of each band ``n >= 1``: the largest power of two ``s`` (<= 8)
+    that leaves the band's CoC at least ``min_px`` coarse pixels wide (1: full resolution).
+    ``min_px <= 0`` gives 1 everywhere (the direct evaluation)."""
+    out = {}
+    for n in range(1, len(diameters)):
+        s = 1
+        while min_px > 0 and s < 8 and diameters[n] / (2 * s) >= min_px:
+            s *= 2
+        out[n] = s
+    return out
+
+
 def prior_transmission(shape: Aperture, size: int) -> np.ndarray:
     """The shape's transmission on the pupil grid, ``(size, size)``, row 0 at the top (v up)."""
     axis = np.linspace(-PUPIL_EXTENT, PUPIL_EXTENT, size)
@@ -131,6 +166,26 @@ def _prior_shape(cfg: Any) -> Aperture:
     if not cfg.init_aperture:
         raise ValueError("pupil_init = 'aperture' needs the data's aperture (init_aperture), got none")
     return aperture_from_dict(cfg.init_aperture["shape"])
+
+
+def _scatter(feats: torch.Tensor, kern: torch.Tensor, which: torch.Tensor, s: int) -> torch.Tensor:
+    """(colour x gate, gate) ``(M, 4, win, win)`` scattered by the kernels ``kern[which]``
+    (``(tiles, 3, k, k)``): ``(M, 6, win, win)`` (colour, per-channel coverage), 'same' size,
+    on a grid ``s`` times coarser when ``s > 1``."""
+    win = feats.shape[-1]
+    if s > 1:
+        size = -(-win // s) * s
+        feats = F.avg_pool2d(F.pad(feats, (0, size - win, 0, size - win)), s)
+        kern = reduce_kernel(kern, s)
+    k, n = kern.shape[-1], feats.shape[-1]
+    fs = next_fast_len(n + k - 1)
+    fx = torch.fft.rfft2(feats, s=(fs, fs))
+    fk = torch.fft.rfft2(kern, s=(fs, fs))[which]  # (M, 3, ...) per tile
+    prod = torch.cat([fx[:, :3] * fk, fx[:, 3:4] * fk], dim=1)  # (M, 6, ...)
+    out = torch.fft.irfft2(prod, s=(fs, fs))[..., k // 2 : k // 2 + n, k // 2 : k // 2 + n]  # 'same'
+    if s > 1:
+        out = F.interpolate(out, scale_factor=s, mode="bilinear", align_corners=False)[..., :win, :win]
+    return out
 
 
 class LensBokeh(nn.Module):
@@ -212,12 +267,17 @@ class LensBokeh(nn.Module):
         shifted = x + o
         return (shifted - s) / (shifted + s)
 
-    def tile_accumulators(self, x: torch.Tensor, tile_active: torch.Tensor | None = None) -> torch.Tensor:
+    def tile_accumulators(self, x: torch.Tensor, tile_active: torch.Tensor | None = None,
+                          scales: dict[int, int] | None = None) -> torch.Tensor:
         """``(B, 4, H, W)`` -> per-window accumulators ``(B, tiles, 3 buckets, 6, win, win)``
         (premultiplied RGB and per-channel coverage of the near, same-surface and far light).
 
         ``tile_active`` (``(tiles,)`` bool, optional): inactive tiles pass their core through
         as in-focus light without any convolution (exact when their window is all in focus).
+        ``scales`` (``{band: s}``, optional; see :func:`band_scales`): band ``n`` is scattered
+        on a grid ``s`` times coarser (box-averaged features, the kernel binned by
+        :func:`reduce_kernel`, bilinear upsampling), the approximation the fast export makes;
+        the buckets stay at full resolution.
         """
         cfg = self.config
         if x.ndim != 4 or x.shape[1] != 4 or tuple(x.shape[2:]) != (cfg.image_height, cfg.image_width):
@@ -248,8 +308,8 @@ class LensBokeh(nn.Module):
             return acc.view(b, n_t, 3, 6, win, win)
         coc_flat = coc.reshape(b * n_t, win, win)
         rgb_flat = rgb.reshape(b * n_t, 3, win, win)
-        fs = next_fast_len(win + self.kernel_size(cfg.blocks) - 1)
-        contribs, indices = [], []
+        scales = scales or {}
+        grad = torch.is_grad_enabled()
         for n in range(1, cfg.blocks + 1):
             g = _gate(pos, n) * src[:, :, 0]  # (B, T, win, win)
             kern = None
@@ -261,19 +321,14 @@ class LensBokeh(nn.Module):
                     continue  # no pixel of any tile uses this band on this side: nothing computed
                 if kern is None:
                     kern = self.kernels(n)  # (T, 2, 3, k, k)
-                k = kern.shape[-1]
                 w = gs.reshape(b * n_t, 1, win, win)[idx]
                 feats = torch.cat([rgb_flat[idx] * w, w], dim=1)  # (M, 4, win, win)
-                fx = torch.fft.rfft2(feats, s=(fs, fs))
-                fk = torch.fft.rfft2(kern[:, side], s=(fs, fs))[idx % n_t]  # (M, 3, ...) per tile
-                prod = torch.cat([fx[:, :3] * fk, fx[:, 3:4] * fk], dim=1)  # (M, 6, ...)
-                out = torch.fft.irfft2(prod, s=(fs, fs))[..., k // 2 : k // 2 + win, k // 2 : k // 2 + win]  # 'same'
+                out = _scatter(feats, kern[:, side], idx % n_t, scales.get(n, 1))
                 bw = bucket_weights(sign * float(self.diameters[n]), coc_flat[idx], cfg.occlusion_margin_px)
-                contribs.append(bw.permute(1, 0, 2, 3).unsqueeze(2) * out.unsqueeze(1))  # (M, 3, 6, win, win)
-                indices.append(idx)
+                contrib = bw.permute(1, 0, 2, 3).unsqueeze(2) * out.unsqueeze(1)  # (M, 3, 6, win, win)
+                # one band at a time: memory stays O(image), not O(image x bands)
+                acc = acc.index_add(0, idx, contrib) if grad else acc.index_add_(0, idx, contrib)
                 self.last_convolutions += int(idx.numel())
-        if contribs:
-            acc = acc.index_add(0, torch.cat(indices), torch.cat(contribs))
         return acc.view(b, n_t, 3, 6, win, win)
 
     def composite(self, acc: torch.Tensor) -> torch.Tensor:
@@ -290,11 +345,13 @@ class LensBokeh(nn.Module):
             taken = taken + a * frac
         return out / taken.clamp_min(_EPS)
 
-    def forward(self, x: torch.Tensor, return_tiles: bool = False, tile_active: torch.Tensor | None = None) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, return_tiles: bool = False, tile_active: torch.Tensor | None = None,
+                scales: dict[int, int] | None = None) -> torch.Tensor:
         """``(B, 4, H, W)`` -> ``(B, 3, H, W)`` normalised defocused RGB; with ``return_tiles``
-        each window composited on its own ``(B, tiles * 3, win, win)`` (per-tile-loss ablation)."""
+        each window composited on its own ``(B, tiles * 3, win, win)`` (per-tile-loss ablation).
+        ``tile_active``, ``scales``: see :meth:`tile_accumulators`."""
         cfg = self.config
-        acc = self.tile_accumulators(x, tile_active)  # (B, T, 3, 6, win, win)
+        acc = self.tile_accumulators(x, tile_active, scales)  # (B, T, 3, 6, win, win)
         b, n_t, _, _, win, _ = acc.shape
         if return_tiles:
             out = self.composite(acc.view(b * n_t, 3, 6, win, win))

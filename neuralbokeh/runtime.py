@@ -13,7 +13,11 @@ normalisation and CoC range come from the model file's metadata.
 Leaving out what a scene does not need: a tile whose |CoC| stays below ``in_focus_px``
 (default 0.5 px) over its whole window (the tile and its overlap: tiles are evaluated
 independently, so the window is the tile's entire receptive field) returns its input
-without running the network. Tiles that do run give exactly what the full evaluation gives.
+without running the network. In a lens model (``model.architecture = "lens"``), the CoC
+bands and sides of the focus plane that no pixel of a tile scatters are not computed either
+(``band_active``, proved from the frame's CoC map: a frame whose largest CoC is a third of
+the model's runs only a third of the bands). Both are exact: tiles and bands that run give
+what the full evaluation gives.
 """
 
 from __future__ import annotations
@@ -76,7 +80,9 @@ class BokehModel:
         self.coc_scale_px = float(self.meta["coc_scale_px"])
         self.layout = tuple(int(v) for v in self.meta["layout"])
         self.skip_in_focus, self.in_focus_px = skip_in_focus, float(in_focus_px)
+        self.has_bands = "band_active" in {i.name for i in self.session.get_inputs()}
         self.last_tiles_run = 0
+        self.last_bands_run = 0  # (tile, band, side) scatters run by the last call (lens models)
 
     @property
     def num_tiles(self) -> int:
@@ -122,6 +128,38 @@ class BokehModel:
         return np.array([padded[i * t : i * t + win, j * t : j * t + win].max() >= self.in_focus_px
                          for i in range(rows) for j in range(cols)], dtype=bool)
 
+    def active_bands(self, coc_px: np.ndarray) -> np.ndarray:
+        """``(tiles, N, 2)`` bool (lens models): whether any pixel that tile ``k`` scatters (its
+        core, out to the window's edge on image-border sides) has a non-zero gate in band
+        ``n = 1..N`` on side ``s`` (0 behind the focus plane, 1 in front), in any image of the
+        batch ``(B, H, W)``. A superset by 1e-3 of a band at the band edges (exact).
+        All true when skipping is off."""
+        cfg = self.meta["model_config"]
+        blocks, c_max = int(cfg["blocks"]), float(cfg["coc_scale_px"])
+        rows, cols, t, t_o = self.layout
+        flags = np.zeros((rows * cols, max(blocks, 1), 2), dtype=bool)
+        step = (max(c_max, 1.0) - 1.0) / max(blocks, 1)
+        if not self.skip_in_focus or blocks == 0 or step <= 0:
+            return np.ones_like(flags) if not self.skip_in_focus else flags
+        c = np.asarray(coc_px, dtype=np.float32)
+        pos = np.clip((np.abs(c) - 1.0) / step, 0.0, blocks)
+        width = blocks + 2
+        side = np.where(c > 0, 0, np.where(c < 0, width, 2 * width)).astype(np.int32)  # 2 width: in focus, scatters nothing
+        # bands lo and lo + 1 around each pixel's band position, and one more where it sits within
+        # 1e-3 of a band centre (float32 rounding in the model): a superset of the non-zero hats
+        lo = side + np.floor(np.maximum(pos - 1e-3, 0.0)).astype(np.int32)
+        hi = side + np.floor(pos + 1e-3).astype(np.int32) + 1
+        for i in range(rows):
+            for j in range(cols):
+                # the pixels tile (i, j) scatters, in image coordinates (a border tile's source
+                # reaches into the edge padding, which repeats pixels of its own core)
+                r0, r1 = max(i * t, 0), min((i + 1) * t, self.height) if i < rows - 1 else self.height
+                c0, c1 = max(j * t, 0), min((j + 1) * t, self.width) if j < cols - 1 else self.width
+                seen_lo = np.bincount(lo[:, r0:r1, c0:c1].ravel(), minlength=3 * width)
+                seen = seen_lo + np.roll(seen_lo, 1) + np.bincount(hi[:, r0:r1, c0:c1].ravel(), minlength=3 * width + 1)[: 3 * width]
+                flags[i * cols + j] = (seen[: 2 * width].reshape(2, width)[:, 1 : blocks + 1] > 0).T
+        return flags
+
     def _images(self, aif: np.ndarray) -> tuple[np.ndarray, bool]:
         a = np.asarray(aif)
         batched = a.ndim == 4
@@ -162,13 +200,18 @@ class BokehModel:
         active = self.active_tiles(coc_px)
         self.last_tiles_run = int(active.sum())
         feeds = {
-            "aif": np.ascontiguousarray(self.normalization.encode(aif.astype(np.float64)).transpose(0, 3, 1, 2), dtype=np.float32),
+            # float32 throughout: the graph takes float32, and 1 - n is exact in float32 near n = 1
+            "aif": np.ascontiguousarray(self.normalization.encode(aif.astype(np.float32, copy=False)).transpose(0, 3, 1, 2)),
             "coc": np.ascontiguousarray((coc_px / self.coc_scale_px)[:, None], dtype=np.float32),
             "tile_active": active,
         }
-        out = self.session.run(["defocus"], feeds)[0].astype(np.float64)
+        if self.has_bands:
+            bands = self.active_bands(coc_px) & active[:, None, None]
+            feeds["band_active"] = bands
+            self.last_bands_run = int(bands.sum())
+        out = self.session.run(["defocus"], feeds)[0]
         if not (out < 1.0).all():
             where = format_location(np.unravel_index(int(np.argmax(out)), out.shape)[2:])
             raise ValueError(f"the model's output saturated (normalised value {out.max()} >= 1) at {where}")
-        linear = self.normalization.decode(out).transpose(0, 2, 3, 1).astype(np.float32)
+        linear = np.ascontiguousarray(self.normalization.decode(out).transpose(0, 2, 3, 1), dtype=np.float32)
         return linear if batched else linear[0]

@@ -111,3 +111,23 @@ def test_report_files_and_identity_row(tiny_dataset, busy_onnx, tmp_path):
     assert "| gather |" in (tmp_path / "report" / "report.md").read_text()
     with pytest.raises(SystemExit, match="unknown baselines"):
         main(["--data", str(tiny_dataset), "--baselines", "bogus", "--out", str(tmp_path / "r2")])
+
+
+def test_split_all_and_the_default_split_follows_the_training_run(tiny_dataset, busy_checkpoint, busy_onnx, tmp_path):
+    from neuralbokeh.evaluate import split_of_models
+    from neuralbokeh.training.checkpoint import load_checkpoint, save_checkpoint
+
+    rc = main(["--data", str(tiny_dataset), "--baselines", "identity", "--split", "all", "--out", str(tmp_path / "all"),
+               "--repeats", "1", "--threads", "1"])
+    assert rc == 0
+    report = json.loads((tmp_path / "all" / "report.json").read_text())
+    assert report["info"]["split"] == "all" and report["info"]["samples"] == 5 * 3  # every scene, every slice
+    # the split is the training run's unless given: from a checkpoint and from its export
+    data = load_checkpoint(busy_checkpoint)
+    data["train_config"]["data"].update(test_fraction=0.4, split_seed=7)
+    other = save_checkpoint(tmp_path / "other.pt", {k: v for k, v in data.items() if k not in ("format", "format_version", "package_version")})
+    assert split_of_models([other], None, None) == (0.4, 7)
+    assert split_of_models([other], 0.2, None) == (0.2, 7)  # a given value wins (with a warning)
+    trained = load_checkpoint(busy_checkpoint)["train_config"]["data"]
+    assert split_of_models([busy_onnx], None, None) == (trained["test_fraction"], trained["split_seed"])
+    assert split_of_models([], None, None) == (0.2, 0)

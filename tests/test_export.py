@@ -10,7 +10,8 @@ import onnx
 import pytest
 import torch
 
-from neuralbokeh.export.exporter import calibration_inputs, export_checkpoint, probe_inputs
+from neuralbokeh.export.exporter import calibration_inputs, export_checkpoint, probe_inputs, run_session
+from neuralbokeh.export.lens_graph import LENS_DEFAULT_KERNELS
 from neuralbokeh.export.lowrank import cheaper_ranks, factorize, parse_kernels, reconstruct, relative_error
 from neuralbokeh.training import load_model
 from neuralbokeh.training.checkpoint import load_checkpoint
@@ -54,10 +55,7 @@ def test_cheaper_ranks_and_kernel_spec_parsing():
 def _run_onnx(path, aif, coc, active=None):
     from neuralbokeh.export.exporter import session
 
-    sess = session(str(path), threads=1)
-    meta = json.loads({p.key: p.value for p in onnx.load(path).metadata_props}["neuralbokeh"])
-    act = np.ones(meta["num_tiles"], bool) if active is None else active
-    return sess.run(["defocus"], {"aif": aif, "coc": coc, "tile_active": act})[0]
+    return run_session(session(str(path), threads=1), aif, coc, active)
 
 
 def test_export_direct_matches_pytorch_and_carries_metadata(busy_checkpoint, tmp_path):
@@ -93,7 +91,7 @@ def test_export_cli_prints_parity_and_fails_over_tolerance(busy_checkpoint, tmp_
     assert not list(tmp_path.glob(".*tmp"))
     r = subprocess.run([sys.executable, str(ROOT / "export.py"), str(busy_checkpoint), "--out", str(bad),
                         "--opset", "13"], capture_output=True, text=True, cwd=ROOT)
-    assert r.returncode != 0 and "opset must be >= 17" in r.stderr
+    assert r.returncode != 0 and "opset >= 18" in r.stderr  # the lens graph's Col2Im
 
 
 def test_lowrank_export_matches_its_reference_and_approximates_the_model(busy_paper_checkpoint, tmp_path):
@@ -145,9 +143,27 @@ def test_real_trained_checkpoint_exports(trained_checkpoint, tmp_path):
     assert load_checkpoint(trained_checkpoint)["step"] == report["metadata"]["trained_steps"]
 
 
-def test_lens_network_exports_direct_kernels_and_refuses_lowrank(busy_checkpoint, tmp_path):
-    with pytest.raises(ValueError, match="applies to the paper architecture"):
-        export_checkpoint(busy_checkpoint, tmp_path / "x.onnx", kernels="lowrank:2", threads=1)
+def test_lens_network_exports_multires_by_default_and_refuses_lowrank(busy_checkpoint, tmp_path):
+    for bad in ("lowrank:2", "auto:0.01", "multires:0", "multires:x"):
+        with pytest.raises(ValueError, match="'direct' or 'multires:PX'"):
+            export_checkpoint(busy_checkpoint, tmp_path / "x.onnx", kernels=bad, threads=1)
     assert not (tmp_path / "x.onnx").exists()  # nothing was written
-    report = export_checkpoint(busy_checkpoint, tmp_path / "d.onnx", threads=1)  # the default spec: direct here
-    assert report["metadata"]["kernels"] == "direct" and max(report["parity"].values()) <= 1e-4
+    report = export_checkpoint(busy_checkpoint, tmp_path / "d.onnx", threads=1)
+    assert report["metadata"]["kernels"] == LENS_DEFAULT_KERNELS and report["metadata"]["opset"] == 18
+    assert max(report["parity"].values()) <= 1e-4
+
+
+def test_multires_export_matches_its_pytorch_reference(busy_checkpoint, tmp_path):
+    """Coarser grids for the wide bands: ONNX equals ``LensBokeh(x, scales=...)`` (the same
+    approximation in PyTorch), which differs from the exact network by the reported amount."""
+    model, _ = load_model(busy_checkpoint)
+    report = export_checkpoint(busy_checkpoint, tmp_path / "m.onnx", kernels="multires:2", threads=1)
+    scales = {int(k[4:]): v["scale"] for k, v in report["kernels"].items()}
+    assert max(scales.values()) >= 2 and min(scales.values()) == 1  # the tiny model's wide bands are reduced
+    assert max(report["parity"].values()) <= 1e-4 and max(report["approximation"].values()) > 1e-4
+    x = calibration_inputs(model.config.image_height, model.config.image_width, count=2, seed=9)
+    got = _run_onnx(tmp_path / "m.onnx", x[:, :3].numpy(), x[:, 3:].numpy())
+    with torch.no_grad():
+        want, exact = model(x, scales=scales).numpy(), model(x).numpy()
+    assert np.abs(got - want).max() < 1e-4
+    assert np.abs(got - exact).max() > 1e-4

@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from neuralbokeh.apertures import ApertureModel, Disk
-from neuralbokeh.lensnet import band_diameters, band_gates, bucket_weights
+from neuralbokeh.lensnet import band_diameters, band_gates, band_scales, bucket_weights, reduce_kernel
 from neuralbokeh.model import ModelConfig, build_model
 from neuralbokeh.normalization import Normalization
 from neuralbokeh.render import scatter_defocus
@@ -62,6 +62,59 @@ def test_point_light_is_the_aperture_at_its_coc_and_keeps_flux():
     corr = float((out * ref).sum() / (out.norm() * ref.norm()))
     assert corr > 0.97, corr  # the disk pupil rasterised at the CoC is the disk kernel
     assert float(out[20, 27]) < 0.1 * 1000.0  # spread, not left as a spike
+
+
+def test_binned_kernels_keep_their_sum_and_symmetry():
+    g = torch.Generator().manual_seed(4)
+    k = torch.rand(2, 3, 17, 17, generator=g, dtype=torch.float64)
+    for s in (2, 4, 8):
+        r = reduce_kernel(k, s)
+        assert r.shape[-1] % 2 == 1 and r.shape[-1] <= 17 // s + 2
+        torch.testing.assert_close(r.sum(dim=(-2, -1)), k.sum(dim=(-2, -1)), rtol=1e-12, atol=0)
+        sym = k + k.flip(-2, -1)  # point-symmetric kernels stay centred
+        torch.testing.assert_close(reduce_kernel(sym, s), reduce_kernel(sym, s).flip(-2, -1), rtol=1e-12, atol=1e-12)
+    assert torch.equal(reduce_kernel(k, 1), k)
+    # bands go to coarser grids only where their CoC stays >= min_px coarse px wide; 0: direct
+    d = band_diameters(41.0, 20)
+    scales = band_scales(d, 6.0)
+    assert all(d[n] / scales[n] >= 6.0 for n in scales if scales[n] > 1) and scales[20] == 2 * scales[10] == 4
+    assert set(band_scales(d, 0.0).values()) == {1}
+
+
+@pytest.mark.parametrize("s", [2, 4])
+def test_a_coarser_grid_keeps_flux_and_moves_or_widens_light_by_at_most_its_step(s):
+    """What the fast export's reduced-resolution bands cost, stated physically: a point light's
+    flux is kept; its centroid moves by at most (s - 1) / 2 px per axis (the box it is pooled
+    into) and its second moment grows by at most s^2 px^2 (box, binned kernel, bilinear)."""
+    m = _model()
+    d = float(band_diameters(C_MAX, 6)[5])
+    yy, xx = torch.meshgrid(torch.arange(48.0, dtype=torch.float64), torch.arange(48.0, dtype=torch.float64), indexing="ij")
+    black = NORM.decode(NORM.encode(torch.zeros((), dtype=torch.float64)))
+
+    def moments(out):
+        o = out.clamp_min(0.0)
+        f = o.sum()
+        cy, cx = (o * yy).sum() / f, (o * xx).sum() / f
+        return float(f), float(cy), float(cx), float((o * ((yy - cy) ** 2 + (xx - cx) ** 2)).sum() / f)
+
+    for y, x in ((20, 27), (21, 26), (22, 22)):
+        img = torch.zeros(1, 3, 48, 48, dtype=torch.float64)
+        img[..., y, x] = 1000.0
+        coc = torch.full((1, 1, 48, 48), d, dtype=torch.float64)
+        xin = torch.cat([NORM.encode(img), coc / C_MAX], 1).float()
+        with torch.no_grad():
+            full, coarse = (NORM.decode(m(xin, scales=sc).double())[0, 1] - black for sc in (None, {5: s}))
+        f0, y0, x0, m0 = moments(full)
+        f1, y1, x1, m1 = moments(coarse)
+        assert f1 == pytest.approx(f0, rel=1e-5)
+        assert abs(y1 - y0) <= (s - 1) / 2 + 1e-3 and abs(x1 - x0) <= (s - 1) / 2 + 1e-3
+        assert 0.0 <= m1 - m0 <= s**2, (m0, m1)
+    flat = torch.full((1, 3, 48, 48), 0.7, dtype=torch.float64)
+    g = torch.Generator().manual_seed(1)
+    coc = (2 * torch.rand(1, 1, 48, 48, generator=g, dtype=torch.float64) - 1) * C_MAX
+    xin = torch.cat([NORM.encode(flat), coc / C_MAX], 1).float()
+    with torch.no_grad():  # a uniform field stays uniform on any grid
+        assert torch.allclose(NORM.decode(m(xin, scales={n: s for n in range(1, 7)}).double()), flat, rtol=1e-5)
 
 
 def test_blurred_foreground_spills_over_an_in_focus_background_and_not_the_reverse():

@@ -115,6 +115,43 @@ def test_in_focus_tiles_are_skipped_and_defocused_ones_unchanged(which, request)
     np.testing.assert_allclose(everything_sharp, aif, rtol=2e-6)
 
 
+def test_bands_no_pixel_of_a_tile_uses_are_left_out_exactly(busy_onnx, busy_checkpoint):
+    m_full = BokehModel(busy_onnx, threads=1, skip_in_focus=False)
+    m_skip = BokehModel(busy_onnx, threads=1)
+    blocks = m_skip.meta["model_config"]["blocks"]
+    aif = _scene(m_skip, seed=5)
+    g = np.random.default_rng(2)
+    coc = g.uniform(-1.0, 1.0, (m_skip.height, m_skip.width)) * m_skip.max_coc_px / 3  # a third of the range
+    full, skip = m_full.render_coc(aif, coc), m_skip.render_coc(aif, coc)
+    assert m_full.last_bands_run == m_skip.num_tiles * blocks * 2
+    assert 0 < m_skip.last_bands_run <= m_skip.num_tiles * 2 * (blocks // 3 + 2)
+    np.testing.assert_allclose(skip, full, rtol=2e-6, atol=1e-7)
+
+
+def test_active_bands_hold_every_band_the_network_uses(busy_onnx, busy_checkpoint):
+    """The runtime's band flags (numpy, float64) cover the PyTorch model's own test (float32), at
+    band centres and edges too, where the two could round differently."""
+    from neuralbokeh.lensnet import _gate, band_diameters, band_position
+    from neuralbokeh.tiling import tile
+
+    m = BokehModel(busy_onnx, threads=1)
+    model, _ = load_model(busy_checkpoint)
+    cfg = model.config
+    d = band_diameters(model.c_max, cfg.blocks)
+    g = np.random.default_rng(8)
+    levels = np.concatenate([d, (d[1:] + d[:-1]) / 2, d + 1e-7, d - 1e-7, [0.0, 0.5]])
+    coc = g.choice(levels, (2, m.height, m.width)) * g.choice([-1.0, 1.0], (2, m.height, m.width))
+    flags = m.active_bands(coc)
+    c = tile(torch.from_numpy(coc[:, None] / model.c_max).float(), cfg.layout) * model.c_max  # (B, T, win, win)
+    pos = band_position(c, model.c_max, cfg.blocks)
+    for n in range(1, cfg.blocks + 1):
+        for side, sel in enumerate((c > 0, c < 0)):
+            used = ((_gate(pos, n) * sel * model.source_mask[None, :, 0]).flatten(2).amax(-1) > 0).any(0).numpy()
+            assert not (used & ~flags[:, n - 1, side]).any(), (n, side)
+    one = m.active_bands(np.full((1, m.height, m.width), (d[2] + d[3]) / 2))  # between bands 2 and 3, behind
+    assert one[:, [1, 2], 0].all() and one.sum() == 2 * m.num_tiles  # and nothing else
+
+
 def test_runtime_imports_no_torch(busy_onnx):
     code = ("import sys, numpy as np; from neuralbokeh.runtime import BokehModel; "
             f"m = BokehModel(r'{busy_onnx}', threads=1); "

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from neuralbokeh.export.exporter import export_checkpoint, probe_inputs, session
+from neuralbokeh.export.exporter import export_checkpoint, probe_inputs, run_session, session
 from neuralbokeh.model import ModelConfig, build_model
 from neuralbokeh.normalization import Normalization
 from neuralbokeh.training import load_model
@@ -48,18 +48,24 @@ def checkpoint(request, tmp_path_factory):
     return _random_checkpoint(tmp_path_factory.mktemp("stab") / f"{request.param}.pt", h, w, architecture)
 
 
+@pytest.mark.parametrize("kernels", ["direct", "multires:1"])
 @pytest.mark.parametrize("fp16", [False, True], ids=["fp32", "fp16"])
-def test_extreme_cases_are_finite_bounded_and_within_parity(checkpoint, fp16, tmp_path):
-    report = export_checkpoint(checkpoint, tmp_path / "m.onnx", fp16=fp16, kernels="direct", threads=1)
+def test_extreme_cases_are_finite_bounded_and_within_parity(checkpoint, fp16, kernels, tmp_path):
+    """``multires:1`` (lens only): every band of these small models on a coarser grid."""
     model, _ = load_model(checkpoint)
     cfg = model.config
+    if kernels != "direct" and cfg.architecture != "lens":
+        pytest.skip("coarser band grids are the lens network's export option")
+    report = export_checkpoint(checkpoint, tmp_path / "m.onnx", fp16=fp16, kernels=kernels, threads=1)
+    scales = {int(k[4:]): v["scale"] for k, v in report["kernels"].items()} if cfg.architecture == "lens" else None
     sess = session(str(tmp_path / "m.onnx"), threads=1)
     norm = Normalization()
     for name, (aif, coc) in probe_inputs(cfg.image_height, cfg.image_width).items():
         assert report["parity"][name] <= TOLERANCE[fp16], name
         with torch.no_grad():
-            ref = model(torch.from_numpy(np.concatenate([aif, coc], axis=1))).numpy()
-        got = sess.run(["defocus"], {"aif": aif, "coc": coc, "tile_active": np.ones(cfg.num_tiles, bool)})[0]
+            x = torch.from_numpy(np.concatenate([aif, coc], axis=1))
+            ref = (model(x, scales=scales) if scales else model(x)).numpy()
+        got = run_session(sess, aif, coc)
         for out in (ref, got):
             assert np.isfinite(out).all() and np.abs(out).max() < 1.0, name
             assert np.isfinite(norm.decode(out.astype(np.float64))).all(), name

@@ -69,7 +69,7 @@ def test_shipped_configs_load_and_ablations_differ_as_named():
 
 def test_config_errors(tmp_path):
     good = ROOT / "configs" / "quickstart.toml"
-    with pytest.raises(ValueError, match=r"unknown key\(s\) \['stepz'\] in \[train\]"):
+    with pytest.raises(ValueError, match=r"command-line override 'train.stepz=3': unknown key 'stepz' in \[train\]"):
         load_config(good, ["train.stepz=3"])
     with pytest.raises(TypeError, match="train.steps must be int, got 'ten'"):
         load_config(good, ["train.steps=ten"])
@@ -79,8 +79,11 @@ def test_config_errors(tmp_path):
         load_config(good, ["model.tiling=grid"])
     with pytest.raises(ValueError, match="section.key=value"):
         load_config(good, ["steps=3"])
-    with pytest.raises(ValueError, match=r"unknown section\(s\) \['optim'\]"):
+    with pytest.raises(ValueError, match=r"command-line override 'optim.lr=1.0': unknown section 'optim'"):
         load_config(good, ["optim.lr=1.0"])
+    (tmp_path / "typo.toml").write_text('extends = "%s"\n[train]\nstepz = 3\n' % good)
+    with pytest.raises(ValueError, match=r"typo.toml: unknown key\(s\) \['stepz'\] in \[train\]"):  # in a file: the file
+        load_config(tmp_path / "typo.toml")
     assert load_config(good, ["train.lr=1", "data.roots=['a', 'b']"]).train.lr == 1.0
     (tmp_path / "a.toml").write_text('extends = "b.toml"\n')
     (tmp_path / "b.toml").write_text('extends = "a.toml"\n')

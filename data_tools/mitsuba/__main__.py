@@ -22,6 +22,7 @@ from tqdm import tqdm
 
 from neuralbokeh import __version__
 from neuralbokeh.apertures import ApertureModel, parse_aperture
+from neuralbokeh.cli import HelpFormatter, run_cli
 from neuralbokeh.data import write_scene
 from neuralbokeh.io import read_image
 from neuralbokeh.optics import ThinLens, focus_sweep_m
@@ -96,7 +97,7 @@ def render_one(mi: Any, index: int, opts: dict[str, Any], xml_scene: Any = None)
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m data_tools.mitsuba", description=__doc__,
-                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                                formatter_class=HelpFormatter)
     p.add_argument("--out", required=True, type=Path, help="dataset folder (created; existing scenes are kept)")
     p.add_argument("--scenes", type=int, default=8, help="number of procedural scenes")
     p.add_argument("--planar", action="store_true", help="procedural scenes of fronto-parallel rectangles only")
@@ -189,4 +190,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_cli(main))

@@ -32,6 +32,7 @@ import torch.nn.functional as F
 from tqdm import tqdm
 
 from neuralbokeh import __version__
+from neuralbokeh.cli import HelpFormatter, run_cli
 from neuralbokeh.data import write_scene
 from neuralbokeh.io import read_image
 from neuralbokeh.optics import ThinLens
@@ -194,7 +195,7 @@ def process_stack(stack: Path, out: Path, args: argparse.Namespace, failures: li
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m data_tools.raw", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+                                formatter_class=HelpFormatter)
     p.add_argument("stacks", nargs="+", type=Path, help="folders of RAW files, one static scene each")
     p.add_argument("--out", type=Path, required=True, help="dataset folder to write scenes into")
     p.add_argument("--focus-distances", help="comma-separated focus distances in m, in file-name order")
@@ -210,7 +211,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rotation", action="store_true", help="also fit a rotation when aligning")
     p.add_argument("--no-align", action="store_true", help="the slices are already registered")
     p.add_argument("--window", type=float, default=2.0, help="focus-measure window sigma in px (default 2)")
-    p.add_argument("-v", "--verbose", action="store_true")
+    p.add_argument("-v", "--verbose", action="store_true", help="progress logging, and tracebacks with errors")
     return p
 
 
@@ -224,6 +225,9 @@ def main(argv: list[str] | None = None) -> int:
             raise SystemExit(f"error: --white-balance R,G,B must be numbers, got {args.white_balance!r}") from None
     if args.depth and len(args.stacks) != 1:
         raise SystemExit("error: --depth applies to one stack; give one STACK_DIR")
+    missing = [str(s) for s in args.stacks if not Path(s).is_dir()]
+    if missing:  # a mistyped argument, not a bad file inside a stack: nothing is processed
+        raise SystemExit(f"error: no such stack folder: {', '.join(missing)}")
     args.out.mkdir(parents=True, exist_ok=True)
     failures: list[str] = []
     rows = []
@@ -249,4 +253,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_cli(main))

@@ -25,6 +25,7 @@ import torch
 from kornia.geometry.transform import get_rotation_matrix2d, warp_affine
 
 from neuralbokeh.apertures import ApertureModel, Disk
+from neuralbokeh.cli import HelpFormatter
 from neuralbokeh.io import write_image
 from neuralbokeh.optics import ThinLens, focus_sweep_m
 from neuralbokeh.render import scatter_layers
@@ -128,15 +129,15 @@ def make_stack(out: Path, seed: int, size: tuple[int, int], slices: int, lens: T
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--out", type=Path, required=True)
-    p.add_argument("--stacks", type=int, default=1)
-    p.add_argument("--size", type=int, nargs=2, default=(256, 192), metavar=("W", "H"))
-    p.add_argument("--slices", type=int, default=5)
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
+    p.add_argument("--out", type=Path, required=True, help="folder to write the stacks (stack_<i>/) and their truth into")
+    p.add_argument("--stacks", type=int, default=1, help="number of focal stacks (scenes)")
+    p.add_argument("--size", type=int, nargs=2, default=(256, 192), metavar=("W", "H"), help="image size in px")
+    p.add_argument("--slices", type=int, default=5, help="focus distances (RAW files) per stack")
     p.add_argument("--breathing", type=float, default=0.02, help="magnification spread across the stack")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--focal-length", type=float, default=50.0)
-    p.add_argument("--f-number", type=float, default=1.8)
+    p.add_argument("--seed", type=int, default=0, help="seed of the scenes and the sensor noise")
+    p.add_argument("--focal-length", type=float, default=50.0, help="focal length in mm (written to EXIF)")
+    p.add_argument("--f-number", type=float, default=1.8, help="f-number (written to EXIF)")
     p.add_argument("--sensor-width", type=float, default=12.0, help="mm (small: CoCs of several px at small sizes)")
     args = p.parse_args(argv)
     lens = ThinLens(args.focal_length, args.f_number, args.sensor_width)

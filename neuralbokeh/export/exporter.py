@@ -17,11 +17,12 @@ import torch
 
 from .. import __version__
 from ..io import default_mode
+from ..lensnet import band_scales, reduce_kernel
 from ..model import NeuralBokeh
 from ..normalization import Normalization
 from ..training.checkpoint import load_model
 from .graph import build_graph
-from .lens_graph import build_lens_graph
+from .lens_graph import LENS_DEFAULT_KERNELS, build_lens_graph, parse_lens_kernels
 from .lowrank import DEFAULT_KERNELS, cheaper_ranks, factorize, parse_kernels, reconstruct, relative_error
 
 log = logging.getLogger(__name__)
@@ -157,12 +158,24 @@ def session(path_or_bytes: str | bytes, threads: int | None = None) -> ort.Infer
     return ort.InferenceSession(path_or_bytes, so, providers=["CPUExecutionProvider"])
 
 
+def run_session(sess: ort.InferenceSession, aif: np.ndarray, coc: np.ndarray,
+                tile_active: np.ndarray | None = None) -> np.ndarray:
+    """Run an exported graph on normalised ``aif`` ``(B, 3, H, W)`` and ``coc`` ``(B, 1, H, W)``
+    (CoC / coc_scale_px): every tile (or ``tile_active``) and, in a lens graph, every band."""
+    shapes = {i.name: i.shape for i in sess.get_inputs()}
+    feeds = {"aif": aif, "coc": coc,
+             "tile_active": np.ones(shapes["tile_active"][0], dtype=bool) if tile_active is None else tile_active}
+    if "band_active" in shapes:
+        feeds["band_active"] = np.ones(shapes["band_active"], dtype=bool)
+    return sess.run(["defocus"], feeds)[0]
+
+
 def export_checkpoint(
     checkpoint: str | os.PathLike,
     out: str | os.PathLike,
-    opset: int = 17,
+    opset: int | None = None,
     fp16: bool = False,
-    kernels: str = DEFAULT_KERNELS,
+    kernels: str | None = None,
     tolerance: float | None = None,
     threads: int | None = None,
 ) -> dict[str, Any]:
@@ -172,9 +185,12 @@ def export_checkpoint(
         checkpoint: a ``train.py`` checkpoint.
         out: the ``.onnx`` file to write (written to a temporary file and renamed after the
             parity check passed; never half-written).
-        opset: ONNX opset, >= 17.
-        fp16: float16 trunk (see ``graph.py``).
-        kernels: ``direct``, ``lowrank:R`` or ``auto:EPS`` (see ``lowrank.py``).
+        opset: ONNX opset (default and minimum: 17 for the paper network, 18 for the lens network).
+        fp16: float16 trunk (see ``graph.py``) or band convolutions (``lens_graph.py``).
+        kernels: paper network: ``direct``, ``lowrank:R`` or ``auto:EPS`` (see ``lowrank.py``;
+            default ``DEFAULT_KERNELS``); lens network: ``direct`` or ``multires:PX`` (bands
+            whose CoC is wide enough convolved on grids 2, 4 or 8 times coarser, keeping the CoC
+            at least PX coarse pixels wide; default ``LENS_DEFAULT_KERNELS``).
         tolerance: max abs parity error in normalised units (default 1e-4 fp32, 2e-2 fp16).
         threads: onnxruntime threads for the parity run.
 
@@ -191,12 +207,14 @@ def export_checkpoint(
     model, ckpt = load_model(checkpoint)
     cfg = model.config
     lens = cfg.architecture == "lens"
-    if lens:  # per-band kernels rasterised from the learned pupils, written direct
-        if kernels != DEFAULT_KERNELS and parse_kernels(kernels).mode != "direct":
-            raise ValueError(f"--kernels {kernels!r} applies to the paper architecture; the lens architecture exports direct kernels")
-        factors, kernel_report = {}, {f"band{n}": {"k": cfg.kernel_size(n), "rank": 0} for n in range(1, cfg.blocks + 1)}
-        kernels = "direct"
+    opset = (18 if lens else 17) if opset is None else opset
+    if lens:  # per-band kernels rasterised from the learned pupils, direct or on coarser grids
+        kernels = LENS_DEFAULT_KERNELS if kernels is None else kernels
+        scales = band_scales(model.diameters, parse_lens_kernels(kernels))
+        factors = {}
+        kernel_report = {f"band{n}": {"k": cfg.kernel_size(n), "rank": 0, "scale": scales[n]} for n in range(1, cfg.blocks + 1)}
     else:
+        kernels = DEFAULT_KERNELS if kernels is None else kernels
         factors, kernel_report = plan_factors(model, kernels)
         weights = {k: v.detach().numpy() for k, v in model.state_dict().items()}
     meta = {
@@ -208,28 +226,36 @@ def export_checkpoint(
         "kernels": kernels, "kernel_ranks": {k: v["rank"] for k, v in kernel_report.items()},
         "fp16": fp16, "opset": opset, "source_checkpoint": Path(checkpoint).name,
         "trained_steps": ckpt.get("step"),
+        "data_split": ({k: ckpt["train_config"]["data"][k] for k in ("test_fraction", "split_seed")}
+                       if ckpt.get("train_config") else None),
     }
     props = {METADATA_KEY: json.dumps(meta, sort_keys=True)}
     if lens:
         with torch.no_grad():
-            band_kernels = {n: model.kernels(n).double().numpy() for n in range(1, cfg.blocks + 1)}
+            band_kernels = {n: reduce_kernel(model.kernels(n).double(), scales[n]).numpy() for n in range(1, cfg.blocks + 1)}
         onnx_model = build_lens_graph(band_kernels, model.source_mask[:, 0].numpy(), model.diameters, cfg.to_dict(),
-                                      cfg.layout, fp16, opset, props)
+                                      cfg.layout, fp16, opset, props, scales)
     else:
         onnx_model = build_graph(weights, cfg.to_dict(), cfg.layout, factors, fp16, opset, props)
     sess = session(onnx_model.SerializeToString(), threads)
-    reference = lowrank_reference(model, factors) if factors else model
-    active = np.ones(cfg.num_tiles, dtype=bool)
+    if lens:
+        approximate = any(s > 1 for s in scales.values())
+
+        def reference(x: torch.Tensor) -> torch.Tensor:
+            return model(x, scales=scales)
+    else:
+        approximate = bool(factors)
+        reference = lowrank_reference(model, factors) if factors else model
     parity, approx = {}, {}
     with torch.no_grad():
         for name, (aif, coc) in probe_inputs(cfg.image_height, cfg.image_width).items():
-            got = sess.run(["defocus"], {"aif": aif, "coc": coc, "tile_active": active})[0]
+            got = run_session(sess, aif, coc)
             x = torch.from_numpy(np.concatenate([aif, coc], axis=1))
             want = reference(x).numpy()
             if not np.isfinite(got).all():
                 raise ValueError(f"ONNX output is not finite on the {name!r} probe")
             parity[name] = float(np.abs(got - want).max())
-            approx[name] = float(np.abs(want - model(x).numpy()).max()) if factors else 0.0
+            approx[name] = float(np.abs(want - model(x).numpy()).max()) if approximate else 0.0
     worst = max(parity.values())
     log.info("parity (max abs, normalised): %s; low-rank approximation: %s", parity, approx)
     if worst > tolerance:

@@ -146,15 +146,15 @@ def _tile_factors(factors: Mapping[str, tuple[np.ndarray, np.ndarray]], key: str
 
 
 def finish_model(nodes: list, initializers: list, name: str, size: tuple[int, int], tiles: int, opset: int,
-                 metadata: Mapping[str, str] | None) -> onnx.ModelProto:
+                 metadata: Mapping[str, str] | None, extra_inputs: list | None = None) -> onnx.ModelProto:
     """The checked model around a graph with the package's named inputs (``aif``, ``coc``,
-    ``tile_active``) and output (``defocus``) at image size ``(H, W)``."""
+    ``tile_active``, then ``extra_inputs``) and output (``defocus``) at image size ``(H, W)``."""
     h, w = size
     graph = helper.make_graph(
         nodes, name,
         [helper.make_tensor_value_info("aif", TensorProto.FLOAT, ["batch", 3, h, w]),
          helper.make_tensor_value_info("coc", TensorProto.FLOAT, ["batch", 1, h, w]),
-         helper.make_tensor_value_info("tile_active", TensorProto.BOOL, [tiles])],
+         helper.make_tensor_value_info("tile_active", TensorProto.BOOL, [tiles]), *(extra_inputs or [])],
         [helper.make_tensor_value_info("defocus", TensorProto.FLOAT, ["batch", 3, h, w])],
         initializers,
     )

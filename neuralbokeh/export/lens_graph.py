@@ -1,19 +1,30 @@
 """The ONNX graph of the lens architecture (:mod:`neuralbokeh.lensnet`), from its kernels (onnx + numpy).
 
-Same named inputs and output as the paper network's graph (``graph.py``): ``aif``, ``coc``,
-``tile_active`` -> ``defocus``. The learned pupils are rasterised once, at export, into each
-block's per-channel ``(2n + 1)^2`` kernels; the graph holds those.
+Named inputs ``aif``, ``coc``, ``tile_active`` (as the paper network's graph, ``graph.py``) and
+``band_active`` ``(tiles, N, 2)`` bool; output ``defocus``. The learned pupils are rasterised
+once, at export, into each block's per-channel ``(2n + 1)^2`` kernels; the graph holds those.
 
-Per tile (an ONNX ``If`` on ``tile_active``; an inactive tile passes its core through as in-focus
-light): decode to linear light, the CoC bands' hat gates, then per band and side an ``If`` on
-whether any pixel of the window uses it (a band no pixel needs is not computed: exact), a
-grouped convolution of (colour x gate, gate) by the band's kernels (ONNX ``Conv`` correlates:
-the point-spread functions are stored point-reflected), and the near / same-surface / far
-bucket weights. The windows' accumulators are summed into place, composited near over far
-with sum-to-saturation, normalised and encoded, as ``LensBokeh.forward`` does.
+Per tile (an ONNX ``If`` on ``tile_active``; an inactive tile passes its core through as
+in-focus light): decode to linear light, the in-focus band, then per band and side an ``If``
+on ``band_active[tile, n - 1, side]`` (the runtime proves from the frame's CoC map which bands
+a tile's pixels use; a band that does not run returns an empty tensor, so it costs nothing
+downstream either): the band's hat gate, a grouped convolution of (colour x gate, gate) by
+the band's kernels (ONNX ``Conv`` correlates: the point-spread functions are stored
+point-reflected), and the near / same-surface / far bucket weights at full resolution.
 
-``fp16`` runs the convolutions in float16 (inputs and kernels); gates, buckets and the
-composite stay float32.
+*Coarser grids* (``scales``, the default export ``multires:10``): a band whose CoC is wide is
+convolved on a grid ``s`` = 2, 4 or 8 times coarser: box-averaged features (``AveragePool``),
+the kernel binned by :func:`~neuralbokeh.lensnet.reduce_kernel`, bilinear upsampling
+(``Resize``, half-pixel). A convolution then costs ``1 / s^4`` of the direct one. What it costs
+in accuracy, stated in ``tests/test_lensnet.py``: flux kept, light moved by at most
+``(s - 1) / 2`` px and widened by at most ``s^2`` px^2 of variance; the PSNR against the direct
+export is measured by ``benchmarks/bench_runtime.py``. ``LensBokeh.forward(x, scales=...)`` is
+the PyTorch reference the export is checked against.
+
+The windows' accumulators ((near, same, far) x (RGB, coverage)) are stacked and overlap-added in one ``Col2Im`` (opset 18), then
+composited near over far with sum-to-saturation, normalised and encoded, as
+``LensBokeh.forward`` does. ``fp16`` runs the convolutions in float16 (inputs and kernels);
+gates, buckets and the composite stay float32.
 """
 
 from __future__ import annotations
@@ -28,6 +39,28 @@ from onnx import TensorProto, helper
 from .graph import _Builder, finish_model
 
 _EPS = 1e-8
+# Bands whose CoC stays >= 10 coarse px wide on a 2, 4 or 8 times coarser grid are convolved there
+# (benchmarks/bench_runtime.py measures the speed and the error against the direct export).
+LENS_DEFAULT_KERNELS = "multires:10"
+
+
+def parse_lens_kernels(spec: str) -> float:
+    """``"direct"`` or ``"multires:PX"`` (PX > 0: the narrowest CoC, in coarse px, a band may
+    have on a reduced grid) -> PX (0 for direct).
+
+    Raises:
+        ValueError: anything else, with the accepted forms.
+    """
+    if spec == "direct":
+        return 0.0
+    mode, _, arg = spec.partition(":")
+    try:
+        px = float(arg)
+    except ValueError:
+        px = -1.0
+    if mode != "multires" or not px > 0 or not np.isfinite(px):
+        raise ValueError(f"kernels for the lens network must be 'direct' or 'multires:PX' (PX > 0 px), got {spec!r}")
+    return px
 
 
 class _Nodes:
@@ -65,11 +98,20 @@ def _linear_rgb(g: _Nodes, window: str, cfg: Mapping[str, Any]) -> tuple[str, st
     return norm_rgb, rgb
 
 
-def _band(b: _Builder, k: int, n: int, side: int, gate: str, rgb: str, c: str, kernel: np.ndarray, band_coc: float,
-          margin: float, fp16: bool) -> onnx.GraphProto:
-    """Then-branch: the band's 18-channel contribution (near, same, far) x (RGB, coverage)."""
+def _band(b: _Builder, k: int, n: int, side: int, pos: str, side_mask: str, src_mask: str, rgb: str, c: str,
+          kernel: np.ndarray, scale: int, win: int, band_coc: float, margin: float, fp16: bool) -> onnx.GraphProto:
+    """Then-branch: band ``n``'s 18-channel contribution (near, same, far) x (RGB, coverage),
+    its convolution on a grid ``scale`` times coarser when ``scale > 1`` (``kernel`` is then
+    the binned one, :func:`~neuralbokeh.lensnet.reduce_kernel`)."""
     g = _Nodes(_Builder(b.count), f"t{k}.n{n}s{side}")
+    one = g.c("one", 1.0)
+    hat = g.op("Relu", g.op("Sub", one, g.op("Abs", g.op("Sub", pos, g.c(f"n{n}", float(n))))))
+    gate = g.op("Mul", g.op("Mul", hat, src_mask), side_mask)
     feats = g.op("Concat", g.op("Mul", rgb, gate), gate, gate, gate, axis=1)  # (B, 6, win, win)
+    if scale > 1:
+        extra = -(-win // scale) * scale - win
+        feats = g.op("AveragePool", feats, kernel_shape=[scale, scale], strides=[scale, scale], pads=[0, 0, extra, extra],
+                     count_include_pad=1)
     w = np.concatenate([kernel, kernel])[:, None, ::-1, ::-1]  # (6, 1, k, k), correlation weights
     p = kernel.shape[-1] // 2
     if fp16:
@@ -78,20 +120,31 @@ def _band(b: _Builder, k: int, n: int, side: int, gate: str, rgb: str, c: str, k
         out = g.op("Cast", conv, to=TensorProto.FLOAT)
     else:
         out = g.op("Conv", feats, g.c("w", w), group=6, pads=[p, p, p, p])
+    if scale > 1:
+        up = g.op("Resize", out, "", g.c("scales", [1.0, 1.0, float(scale), float(scale)]), mode="linear",
+                  coordinate_transformation_mode="half_pixel")
+        out = g.op("Slice", up, g.c("zeros2", [0, 0], np.int64), g.c("win2", [win, win], np.int64),
+                   g.c("axes_hw", [2, 3], np.int64))
     delta = g.op("Sub", g.c("band_coc", band_coc), c)  # < 0: the band is nearer than the receiver
-    zero, one, inv = g.c("zero", 0.0), g.c("one", 1.0), g.c("inv_margin", 1.0 / margin)
+    zero, inv = g.c("zero", 0.0), g.c("inv_margin", 1.0 / margin)
     near = g.op("Clip", g.op("Mul", g.op("Sub", g.op("Neg", delta), g.c("margin", margin)), inv), zero, one)
     far = g.op("Clip", g.op("Mul", g.op("Sub", delta, g.c("margin", margin)), inv), zero, one)
-    same = g.op("Sub", g.op("Sub", one, near), far)
-    parts = g.op("Concat", g.op("Mul", out, near), g.op("Mul", out, same), g.op("Mul", out, far), axis=1)
-    return _branch(g, parts, f"t{k}_band{n}_{side}")
+    near_part, far_part = g.op("Mul", out, near), g.op("Mul", out, far)
+    # per band, not once after the sum: all - near - far of summed 1e4 highlights cancels in float32
+    same_part = g.op("Sub", g.op("Sub", out, near_part), far_part)
+    parts = g.op("Concat", near_part, same_part, far_part, axis=1)
+    return _branch(g, g.op("Unsqueeze", parts, g.c("ax0", [0], np.int64)), f"t{k}_band{n}_{side}")
 
 
-def _tile(b: _Builder, k: int, window: str, kernels: list[np.ndarray], src: np.ndarray, cfg: Mapping[str, Any],
-          diameters: np.ndarray, fp16: bool) -> onnx.GraphProto:
-    """Then-branch: tile ``k``'s accumulators ``(B, 18, win, win)`` from the outer ``window``."""
+def _tile(b: _Builder, k: int, window: str, kernels: Mapping[int, np.ndarray], scales: Mapping[int, int], src: np.ndarray,
+          cfg: Mapping[str, Any], diameters: np.ndarray, fp16: bool) -> onnx.GraphProto:
+    """Then-branch: tile ``k``'s accumulators ``(1, B, 18, win, win)`` from the outer ``window``;
+    band ``n``, side ``s`` runs where ``band_active[k, n - 1, s]``. A band that does not run
+    gives an empty ``(0, B, 18, win, win)``, so the sum over the bands costs only the bands
+    that ran."""
     g = _Nodes(_Builder(b.count), f"t{k}")
     c_max, blocks = float(cfg["coc_scale_px"]), int(cfg["blocks"])
+    win = src.shape[-1]
     _, rgb = _linear_rgb(g, window, cfg)
     coc_in = g.op("Slice", window, g.c("s3", [3], np.int64), g.c("s4", [4], np.int64), g.c("ax1", [1], np.int64))
     one = g.c("one", 1.0)
@@ -99,37 +152,31 @@ def _tile(b: _Builder, k: int, window: str, kernels: list[np.ndarray], src: np.n
     src_mask = g.c("src", src[None, None])
     step = (max(c_max, 1.0) - 1.0) / max(blocks, 1)
     if blocks == 0 or step <= 0:
-        pos = None
+        g0, pos = src_mask, None
     else:
         shifted = g.op("Max", g.op("Sub", g.op("Abs", c), one), g.c("zero", 0.0))
         pos = g.op("Min", g.op("Mul", shifted, g.c("inv_step", 1.0 / step)), g.c("n_max", float(blocks)))
-
-    def gate(n: int) -> str:
-        if pos is None:
-            return src_mask if n == 0 else g.c("zero", 0.0)
-        hat = g.op("Relu", g.op("Sub", one, g.op("Abs", g.op("Sub", pos, g.c(f"n{n}", float(n))))))
-        return g.op("Mul", hat, src_mask)
-
-    g0 = gate(0)
+        g0 = g.op("Mul", g.op("Relu", g.op("Sub", one, pos)), src_mask)
     zeros6 = g.op("Mul", g.op("Concat", rgb, rgb, axis=1), g.c("zero", 0.0))
-    parts = [g.op("Concat", zeros6, g.op("Mul", rgb, g0), g0, g0, g0, zeros6, axis=1)]
+    base = g.op("Unsqueeze", g.op("Concat", zeros6, g.op("Mul", rgb, g0), g0, g0, g0, zeros6, axis=1), g.c("ax0", [0], np.int64))
+    parts = [base]
     if pos is not None:
         behind = g.op("Cast", g.op("Greater", c, g.c("zero", 0.0)), to=TensorProto.FLOAT)
         front = g.op("Cast", g.op("Less", c, g.c("zero", 0.0)), to=TensorProto.FLOAT)
-        zeros18 = g.op("Concat", zeros6, zeros6, zeros6, axis=1)
+        flags = g.op("Gather", "band_active", g.c("index", k, np.int64))  # (N, 2) of this tile
         for n in range(1, blocks + 1):
-            gn = gate(n)
             for side, (mask, sign) in enumerate(((behind, 1.0), (front, -1.0))):
-                gs = g.op("Mul", gn, mask)
-                used = g.op("Greater", g.op("ReduceMax", gs, keepdims=0), g.c("zero", 0.0))
-                then = _band(g.b, k, n, side, gs, rgb, c, kernels[n][side], sign * float(diameters[n]),
-                             float(cfg["occlusion_margin_px"]), fp16)
+                used = g.op("Gather", g.op("Gather", flags, g.c(f"n{n}_row", n - 1, np.int64)), g.c(f"side{side}", side, np.int64))
+                then = _band(g.b, k, n, side, pos, mask, src_mask, rgb, c, kernels[n][side], scales.get(n, 1), win,
+                             sign * float(diameters[n]), float(cfg["occlusion_margin_px"]), fp16)
                 skip = _Nodes(_Builder(g.b.count), f"t{k}.n{n}s{side}.skip")
-                else_graph = _branch(skip, zeros18, f"t{k}_band{n}_{side}_skip")
+                empty = skip.op("Slice", base, skip.c("s0", [0], np.int64), skip.c("s0", [0], np.int64), skip.c("ax0", [0], np.int64))
+                else_graph = _branch(skip, empty, f"t{k}_band{n}_{side}_skip")
                 g.b.count = max(g.b.count, skip.b.count) + 1
                 parts.append(g.op("If", used, then_branch=then, else_branch=else_graph))
-    total = g.op("Sum", *parts) if len(parts) > 1 else parts[0]
-    return _branch(g, total, f"t{k}_network")
+    if len(parts) > 1:
+        base = g.op("ReduceSum", g.op("Concat", *parts, axis=0), g.c("ax0", [0], np.int64), keepdims=1)
+    return _branch(g, base, f"t{k}_network")
 
 
 def _passthrough(b: _Builder, k: int, window: str, src: np.ndarray, cfg: Mapping[str, Any]) -> onnx.GraphProto:
@@ -139,27 +186,32 @@ def _passthrough(b: _Builder, k: int, window: str, src: np.ndarray, cfg: Mapping
     m = g.c("src", src[None, None])
     ones = g.op("Add", g.op("Mul", norm_rgb, g.c("zero", 0.0)), m)  # (B, 3, win, win) of the mask
     zeros6 = g.op("Mul", g.op("Concat", rgb, rgb, axis=1), g.c("zero", 0.0))
-    return _branch(g, g.op("Concat", zeros6, g.op("Mul", rgb, m), ones, zeros6, axis=1), f"t{k}_pass")
+    parts = g.op("Concat", zeros6, g.op("Mul", rgb, m), ones, zeros6, axis=1)
+    return _branch(g, g.op("Unsqueeze", parts, g.c("ax0", [0], np.int64)), f"t{k}_pass")
 
 
 def build_lens_graph(kernels: Mapping[int, np.ndarray], source_masks: np.ndarray, diameters: np.ndarray,
-                     cfg: Mapping[str, Any], layout: tuple[int, int, int, int], fp16: bool = False, opset: int = 17,
-                     metadata: Mapping[str, str] | None = None) -> onnx.ModelProto:
+                     cfg: Mapping[str, Any], layout: tuple[int, int, int, int], fp16: bool = False, opset: int = 18,
+                     metadata: Mapping[str, str] | None = None, scales: Mapping[int, int] | None = None) -> onnx.ModelProto:
     """The full-image ONNX model of a ``LensBokeh``.
 
     Args:
         kernels: ``{n: (tiles, 2, 3, k, k)}`` point-spread functions of block n (side 0 behind,
-            1 in front), as ``LensBokeh.kernels(n)`` returns them.
+            1 in front), as ``LensBokeh.kernels(n)`` returns them, or binned by
+            ``reduce_kernel`` for the bands that ``scales`` reduces.
         source_masks: ``(tiles, win, win)`` the pixels each tile scatters.
         diameters: ``(N + 1,)`` band centres in px.
         cfg: ``ModelConfig.to_dict()``; layout: ``ModelConfig.layout``.
-        fp16: float16 convolutions. opset: >= 17. metadata: ``metadata_props``.
+        fp16: float16 convolutions. opset: >= 18 (``Col2Im``). metadata: ``metadata_props``.
+        scales: ``{n: s}`` band n convolved on a grid s times coarser (default: all 1, direct).
     """
-    if opset < 17:
-        raise ValueError(f"opset must be >= 17, got {opset}")
+    if opset < 18:
+        raise ValueError(f"the lens graph needs opset >= 18 (Col2Im), got {opset}")
+    scales = dict(scales or {})
     rows, cols, t, t_o = layout
     h, w = cfg["image_height"], cfg["image_width"]
     hp, wp, win = rows * t + 2 * t_o, cols * t + 2 * t_o, t + 2 * t_o
+    n_t = rows * cols
     b = _Builder()
     top = _Nodes(b, "g")
     x = top.op("Concat", "aif", "coc", axis=1)
@@ -172,23 +224,25 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], source_masks: np.ndarray
                             b.const(f"t{k}.ends", [i * t + win, j * t + win], np.int64), b.const("axes_hw", [2, 3], np.int64))
             cond = top.op("Gather", "tile_active", b.const(f"t{k}.index", k, np.int64))
             tile_kernels = {n: kernels[n][k] for n in kernels}
-            then = _tile(b, k, window, tile_kernels, source_masks[k], cfg, diameters, fp16)
+            then = _tile(b, k, window, tile_kernels, scales, source_masks[k], cfg, diameters, fp16)
             b.count += 10_000  # branch-local names stay unique across branches
             other = _passthrough(b, k, window, source_masks[k], cfg)
             b.count += 10_000
-            acc = top.op("If", cond, then_branch=then, else_branch=other)
-            placed.append(top.op("Pad", acc, b.const(f"t{k}.place", [0, 0, i * t, j * t, 0, 0, hp - i * t - win, wp - j * t - win],
-                                                      np.int64)))
-    total = top.op("Sum", *placed) if len(placed) > 1 else placed[0]
+            placed.append(top.op("If", cond, then_branch=then, else_branch=other))  # (1, B, 18, win, win)
+    # overlap-add of the windows in one pass: (T, B, 18, win, win) -> (B, 18 win^2, T) -> Col2Im
+    stacked = top.op("Concat", *placed, axis=0) if len(placed) > 1 else placed[0]
+    cols_ = top.op("Reshape", top.op("Transpose", stacked, perm=[1, 2, 3, 4, 0]), b.const("cols_shape", [0, 18 * win * win, n_t], np.int64))
+    total = top.op("Col2Im", cols_, b.const("canvas_hw", [hp, wp], np.int64), b.const("block_hw", [win, win], np.int64),
+                   strides=[t, t])
     canvas = top.op("Slice", total, b.const("crop_start", [t_o, t_o], np.int64), b.const("crop_end", [t_o + h, t_o + w], np.int64),
                     "axes_hw")
     one, zero, eps = b.const("one", 1.0), b.const("zero", 0.0), b.const("eps", _EPS)
+    buckets = [top.op("Slice", canvas, b.const(f"b{q}c0", [6 * q], np.int64), b.const(f"b{q}c2", [6 * q + 6], np.int64),
+                      b.const("ax1", [1], np.int64)) for q in range(3)]
     out = taken = None
     for q in range(3):
-        color = top.op("Slice", canvas, b.const(f"b{q}c0", [6 * q], np.int64), b.const(f"b{q}c1", [6 * q + 3], np.int64),
-                       b.const("ax1", [1], np.int64))
-        cover = top.op("Max", top.op("Slice", canvas, b.const(f"b{q}c1", [6 * q + 3], np.int64),
-                                     b.const(f"b{q}c2", [6 * q + 6], np.int64), "ax1"), zero)
+        color = top.op("Slice", buckets[q], b.const("c0", [0], np.int64), b.const("c3", [3], np.int64), b.const("ax1", [1], np.int64))
+        cover = top.op("Max", top.op("Slice", buckets[q], b.const("c3", [3], np.int64), b.const("c6", [6], np.int64), "ax1"), zero)
         room = one if taken is None else top.op("Max", top.op("Sub", one, taken), zero)
         frac = top.op("Min", one, top.op("Div", room, top.op("Max", cover, eps)))
         lit, got = top.op("Mul", color, frac), top.op("Mul", cover, frac)
@@ -199,4 +253,5 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], source_masks: np.ndarray
     scale = b.const("scale", float(cfg["norm_scale"]))
     top.nodes.append(helper.make_node("Div", [top.op("Sub", shifted, scale), top.op("Add", shifted, scale)], ["defocus"],
                                       name="encode"))
-    return finish_model(top.nodes, b.initializers, "neuralbokeh_lens", (h, w), rows * cols, opset, metadata)
+    extra = [helper.make_tensor_value_info("band_active", TensorProto.BOOL, [n_t, max(int(cfg["blocks"]), 1), 2])]
+    return finish_model(top.nodes, b.initializers, "neuralbokeh_lens", (h, w), n_t, opset, metadata, extra)

@@ -51,7 +51,7 @@ def run_ablations(config: Path, data: Path, out: Path, minutes: float, overrides
     for name in names:
         cfg = load_config(config, [f"data.roots=['{data}']", f"train.out_dir='{out / name}'", *budget, *overrides,
                                    *VARIANTS[name]])
-        summary = train(cfg, time_limit_s=60.0 * minutes if minutes > 0 else None)
+        summary = train(cfg, time_limit_s=60.0 * minutes if minutes > 0 else None, overwrite=True)
         ds = FocalStackDataset(cfg.data.roots, "test", cfg.data.test_fraction, cfg.data.split_seed, normalize=False)
         n = len(ds) if samples <= 0 else min(samples, len(ds))
         result = evaluate({name: model_method(Path(summary["checkpoint"]), threads)}, [ds[i] for i in range(n)], repeats=1)

@@ -8,6 +8,7 @@ other input. Files are written to a temporary name and renamed (never half-writt
 from __future__ import annotations
 
 import os
+import pickle
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -50,7 +51,10 @@ def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = 
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no such checkpoint: {path}")
-    data = torch.load(path, map_location=map_location, weights_only=False)
+    try:
+        data = torch.load(path, map_location=map_location, weights_only=False)
+    except (pickle.UnpicklingError, EOFError, RuntimeError) as e:  # not a torch file, or a truncated one
+        raise ValueError(f"{path} is not a neuralbokeh checkpoint (torch.load: {' '.join(str(e).split())[:200]})") from e
     if not isinstance(data, dict) or data.get("format") != FORMAT:
         raise ValueError(f"{path} is not a neuralbokeh checkpoint")
     if data.get("format_version") != FORMAT_VERSION:

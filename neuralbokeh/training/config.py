@@ -229,5 +229,10 @@ def load_config(path: str | Path, overrides: list[str] | None = None) -> TrainCo
     raw = _read_toml(Path(path))
     for text in overrides or []:
         section, key, value = parse_override(text)
+        if section not in _SECTIONS:
+            raise ValueError(f"command-line override {text!r}: unknown section {section!r}; expected {sorted(_SECTIONS)}")
+        known = {f.name for f in fields(_SECTIONS[section])}
+        if key not in known:
+            raise ValueError(f"command-line override {text!r}: unknown key {key!r} in [{section}]; expected {sorted(known)}")
         raw.setdefault(section, {})[key] = value
     return build_config(raw, str(path))

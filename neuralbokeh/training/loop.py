@@ -38,6 +38,7 @@ from tqdm import tqdm
 
 from ..apertures import ApertureModel, Gaussian
 from ..data import FocalStackDataset, Normalization
+from ..dataset_check import require_sound
 from ..model import ModelConfig, NeuralBokeh, build_model
 from ..optics import blocks_for_coc
 from ..render import scatter_defocus
@@ -206,8 +207,13 @@ def _train(
     progress: bool = True,
     stop_at: int | None = None,
     time_limit_s: float | None = None,
+    overwrite: bool = False,
 ) -> dict[str, Any]:
     """Train from a config; returns a summary (final metrics, checkpoint path, skipped steps).
+
+    The dataset is checked whole first (:func:`~neuralbokeh.dataset_check.require_sound`). A run
+    that dies (an exception, Ctrl-C, too many non-finite steps) writes a checkpoint of its last
+    completed step before the error propagates, so ``resume`` continues from there.
 
     Args:
         cfg: the training configuration.
@@ -217,10 +223,11 @@ def _train(
             ``resume`` continues exactly as if the run had not stopped.
         time_limit_s: stop (with a final evaluation and checkpoint) at the first step that ends
             after this many seconds of training (budgets such as "30 minutes per variant").
+        overwrite: start afresh in an ``out_dir`` that already holds a run (otherwise refused).
 
     Raises:
-        ValueError: inconsistent data, a dataset too small for the batch, a checkpoint from
-            another model config.
+        ValueError: a dataset that fails its check, a dataset too small for the batch, a
+            checkpoint from another model config, an ``out_dir`` holding another run.
         RuntimeError: ``max_nonfinite`` non-finite steps in a row.
     """
     world = int(os.environ.get("WORLD_SIZE", "1"))
@@ -235,6 +242,11 @@ def _train(
         raise ValueError(f"train.batch_size ({t.batch_size}) must be divisible by the number of processes ({world})")
     per_rank = t.batch_size // world
     out_dir = Path(t.out_dir)
+    held = [n for n in ("checkpoint.pt", "log.csv") if (out_dir / n).exists()]
+    if held and not resume and not overwrite:
+        raise ValueError(f"train.out_dir {out_dir} already holds a run ({', '.join(held)}): continue it with --resume "
+                         f"{out_dir / 'checkpoint.pt'}, choose another train.out_dir, or start afresh with --overwrite")
+    require_sound(cfg.data.roots)
 
     norm = Normalization(cfg.data.normalization_scale)
     split = {"test_fraction": cfg.data.test_fraction, "split_seed": cfg.data.split_seed, "normalization": norm}
@@ -280,6 +292,8 @@ def _train(
             board = SummaryWriter(str(out_dir / "tensorboard"))
         except ImportError:
             board = None
+            log.warning("TensorBoard is not installed: the curves go to %s only (pip install -e '.[tensorboard]' "
+                        "for %s)", out_dir / "log.csv", out_dir / "tensorboard")
         log.info("model %s: %d tiles, N=%d, %d parameters", mcfg.to_dict(), mcfg.num_tiles, mcfg.blocks,
                  sum(p.numel() for p in model.parameters()))
 
@@ -298,67 +312,73 @@ def _train(
     bar = tqdm(total=t.steps, initial=start, desc="train", unit="step", disable=not (progress and lead))
     last = t.steps if stop_at is None else min(t.steps, stop_at)
     step = start
-    while step < last:
-        epoch, pos = divmod(step, steps_per_epoch)
-        if epoch != order_epoch:
-            sampler.set_epoch(epoch)
-            order, order_epoch = list(sampler), epoch
-        x, y, names = samples.batch(order[pos * per_rank : (pos + 1) * per_rank], device)
-        for group in optimizer.param_groups:  # the schedule is a function of the step alone
-            group["lr"] = group["lr_scale"] * t.lr * _lr_factor(step, cfg)
-        optimizer.zero_grad(set_to_none=True)
-        loss = compute_loss(net, x, y, t.loss)
-        loss.backward()
-        finite = torch.tensor(
-            [float(torch.isfinite(loss)) * float(all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None))],
-            device=device,
-        )
-        if distributed:
-            dist.all_reduce(finite, op=dist.ReduceOp.MIN)
-        if finite.item() < 1.0:
-            skipped += 1
-            consecutive += 1
+    try:
+        while step < last:
+            epoch, pos = divmod(step, steps_per_epoch)
+            if epoch != order_epoch:
+                sampler.set_epoch(epoch)
+                order, order_epoch = list(sampler), epoch
+            x, y, names = samples.batch(order[pos * per_rank : (pos + 1) * per_rank], device)
+            for group in optimizer.param_groups:  # the schedule is a function of the step alone
+                group["lr"] = group["lr_scale"] * t.lr * _lr_factor(step, cfg)
             optimizer.zero_grad(set_to_none=True)
-            log.warning("step %d: non-finite loss or gradient, step skipped (scenes %s)", step + 1, names)
-            if consecutive >= t.max_nonfinite:
-                raise RuntimeError(
-                    f"{consecutive} non-finite steps in a row, the last at step {step + 1} "
-                    f"(batch scenes on rank {rank}: {', '.join(names)}); lower train.lr or check the data"
-                )
-        else:
-            consecutive = 0
-            if t.grad_clip > 0:
-                torch.nn.utils.clip_grad_norm_(model.parameters(), t.grad_clip)
-            optimizer.step()
-        done = step = step + 1
-        if distributed and time_limit_s is not None:  # all ranks must agree on when to stop
-            elapsed = torch.tensor([time.perf_counter() - t0], dtype=torch.float64)
-            dist.broadcast(elapsed, 0)
-            out_of_time = float(elapsed) > time_limit_s
-        else:
-            out_of_time = time_limit_s is not None and time.perf_counter() - t0 > time_limit_s
-        if out_of_time:
-            last = done
-        row = {"step": done, "loss": loss.item(), "lr": t.lr * _lr_factor(step - 1, cfg), "skipped": skipped}
-        if done % t.eval_every == 0 or done == last:
-            if lead and test_samples:
-                metrics = evaluate(model, test_samples, device, baselines)
-                baselines = {k: v for k, v in metrics.items() if not k.startswith("eval_")}
-                row.update(metrics)
-                bar.set_postfix(psnr=f"{metrics['eval_psnr']:.2f}", gauss=f"{metrics['gaussian_psnr']:.2f}")
+            loss = compute_loss(net, x, y, t.loss)
+            loss.backward()
+            finite = torch.tensor(
+                [float(torch.isfinite(loss)) * float(all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None))],
+                device=device,
+            )
             if distributed:
-                dist.barrier()
-        if lead:
-            row["elapsed_s"] = round(time.perf_counter() - t0, 3)
-            writer.writerow(row)
-            csv_file.flush()
-            if board:
-                for k, v in row.items():
-                    if k != "step":
-                        board.add_scalar(k, v, done)
-            if done % t.checkpoint_every == 0 or done == last:
-                checkpoint(done, metrics)
-        bar.update()
+                dist.all_reduce(finite, op=dist.ReduceOp.MIN)
+            if finite.item() < 1.0:
+                skipped += 1
+                consecutive += 1
+                optimizer.zero_grad(set_to_none=True)
+                log.warning("step %d: non-finite loss or gradient, step skipped (scenes %s)", step + 1, names)
+                if consecutive >= t.max_nonfinite:
+                    raise RuntimeError(
+                        f"{consecutive} non-finite steps in a row, the last at step {step + 1} "
+                        f"(batch scenes on rank {rank}: {', '.join(names)}); lower train.lr or check the data"
+                    )
+            else:
+                consecutive = 0
+                if t.grad_clip > 0:
+                    torch.nn.utils.clip_grad_norm_(model.parameters(), t.grad_clip)
+                optimizer.step()
+            done = step = step + 1
+            if distributed and time_limit_s is not None:  # all ranks must agree on when to stop
+                elapsed = torch.tensor([time.perf_counter() - t0], dtype=torch.float64)
+                dist.broadcast(elapsed, 0)
+                out_of_time = float(elapsed) > time_limit_s
+            else:
+                out_of_time = time_limit_s is not None and time.perf_counter() - t0 > time_limit_s
+            if out_of_time:
+                last = done
+            row = {"step": done, "loss": loss.item(), "lr": t.lr * _lr_factor(step - 1, cfg), "skipped": skipped}
+            if done % t.eval_every == 0 or done == last:
+                if lead and test_samples:
+                    metrics = evaluate(model, test_samples, device, baselines)
+                    baselines = {k: v for k, v in metrics.items() if not k.startswith("eval_")}
+                    row.update(metrics)
+                    bar.set_postfix(psnr=f"{metrics['eval_psnr']:.2f}", gauss=f"{metrics['gaussian_psnr']:.2f}")
+                if distributed:
+                    dist.barrier()
+            if lead:
+                row["elapsed_s"] = round(time.perf_counter() - t0, 3)
+                writer.writerow(row)
+                csv_file.flush()
+                if board:
+                    for k, v in row.items():
+                        if k != "step":
+                            board.add_scalar(k, v, done)
+                if done % t.checkpoint_every == 0 or done == last:
+                    checkpoint(done, metrics)
+            bar.update()
+    except BaseException:  # an exception, Ctrl-C, the non-finite abort: keep what was learned
+        if lead and step > start:
+            path = checkpoint(step, metrics)
+            log.error("training stopped at step %d; its checkpoint is %s (continue with --resume)", step, path)
+        raise
     bar.close()
 
     digests = [_digest(model)]

@@ -1,0 +1,284 @@
+"""Compositing speed at 1080p: the torch-free runtime against PyTorch and the classical scatters.
+
+    python benchmarks/bench_runtime.py                  # ~20 min on 2 cores (exports included)
+    python benchmarks/bench_runtime.py --reuse          # keep the exports of an earlier run
+
+The model: a lens network (``architecture = "lens"``) built for 1920x1080 with k_max = 41
+(coc_scale_px 41, N = 20 blocks), 240 px tiles with 24 px overlap, *initialised from the lens
+prior* (``pupil_init = "aperture"``: a 7-blade aperture), not trained: training at 1080p is out
+of reach on a CPU, and the run time does not depend on the weights. It is exported three ways:
+the default (``multires:10``), the direct-convolution export (``--kernels direct``) and the
+default in float16.
+
+The frame: a procedural layered scene (``data_tools.procedural``, seed ``--seed``) at 1920x1080,
+its CoC from a 50 mm lens on a 36 mm sensor focused at the 30 % depth quantile, the f-number
+chosen so that the largest |CoC| is 40 px. Two variants for "leave out what a frame does not
+need": the same CoC divided by 3 (largest CoC a third of the model's), and the left half of the
+frame in focus.
+
+Every row runs in its own process (``--worker``), so its peak RSS is its own, with ``--threads``
+threads (torch and onnxruntime), median of ``--repeats`` renders after a warm-up. Printed: ms per
+frame, the ratio against the CoC Gaussian scatter of the same run, peak RSS, and for the model
+rows the PSNR (normalised images, the training metric) against the exact-aperture scatter of
+the same frame, and its difference from the fp32 direct export's.
+
+``--trained CKPT`` (with ``--data``, the dataset it was trained on) adds what the default
+export costs a *trained* model: the checkpoint exported direct and default, the held-out PSNR of
+each through the runtime (its training split), and the difference. The frame above flatters
+the direct export (an untrained prior with the truth's own aperture matches the layered render
+to ~58 dB), so it magnifies any approximation; a trained model's own error is what a user sees.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+H, W, C_MAX, TILE, OVERLAP = 1080, 1920, 41.0, 240, 24
+
+
+def make_frame(seed: int) -> tuple[np.ndarray, np.ndarray, dict, np.ndarray]:
+    """``(aif (H, W, 3) linear, signed CoC (H, W) px, lens dict, truth (H, W, 3))`` of the
+    benchmark frame; the truth is the layered render (``scatter_layers``: every layer whole,
+    what foregrounds hide included), as ``data_tools.synth`` renders training data."""
+    sys.path.insert(0, str(ROOT))
+    import torch
+
+    from data_tools.procedural import SceneParams, composite_sharp, make_layers
+    from neuralbokeh.apertures import ApertureModel, parse_aperture
+    from neuralbokeh.optics import ThinLens
+    from neuralbokeh.render import scatter_layers
+
+    layers = make_layers(np.random.default_rng(seed), H, W, SceneParams())
+    aif, depth = composite_sharp(layers)
+    focus = float(np.quantile(depth[np.isfinite(depth)], 0.3))
+    probe = ThinLens(50.0, 1.8, 36.0)
+    lens = ThinLens(50.0, 1.8 * float(np.abs(probe.coc_px(depth, focus, W, signed=True)).max()) / 40.0, 36.0)
+    colors = torch.from_numpy(np.stack([layer.color * layer.alpha[..., None] for layer in layers])).permute(0, 3, 1, 2)
+    alphas = torch.from_numpy(np.stack([layer.alpha for layer in layers]))[:, None]
+    truth = scatter_layers(colors, alphas, [lens.coc_px(layer.depth_m, focus, W, signed=True) for layer in layers],
+                           ApertureModel(parse_aperture("polygon:7")))
+    return (aif.astype(np.float32), lens.coc_px(depth, focus, W, signed=True), lens.to_dict(),
+            truth.permute(1, 2, 0).numpy().astype(np.float32))
+
+
+def _peak_rss_mb() -> float:
+    """This process's own peak RSS (``VmHWM``: unlike ``ru_maxrss`` it is not inherited across exec)."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def make_model(out: Path, reuse: bool) -> dict[str, Path]:
+    """The prior-initialised checkpoint and its three exports."""
+    import torch
+
+    from neuralbokeh.apertures import ApertureModel, parse_aperture
+    from neuralbokeh.export.exporter import export_checkpoint
+    from neuralbokeh.model import ModelConfig, build_model
+    from neuralbokeh.normalization import Normalization
+    from neuralbokeh.optics import ThinLens
+    from neuralbokeh.training.checkpoint import save_checkpoint
+
+    out.mkdir(parents=True, exist_ok=True)
+    aperture = ApertureModel(parse_aperture("polygon:7"))
+    cfg = ModelConfig(image_height=H, image_width=W, blocks=20, tile=TILE, overlap=OVERLAP, architecture="lens",
+                      coc_scale_px=C_MAX, pupil_init="aperture", init_aperture=aperture.to_dict())
+    ckpt = out / "prior_1080p.pt"
+    if not (reuse and ckpt.exists()):
+        torch.manual_seed(0)
+        save_checkpoint(ckpt, {"model_config": cfg.to_dict(), "model_state": build_model(cfg).state_dict(),
+                               "lens": ThinLens(50.0, 1.8, 36.0).to_dict(), "aperture": aperture.to_dict(),
+                               "normalization": Normalization(0.18).to_dict(), "coc_scale_px": C_MAX, "max_coc_px": C_MAX,
+                               "step": 0})
+    paths = {"checkpoint": ckpt}
+    for name, kernels, fp16 in (("default", None, False), ("direct", "direct", False), ("default_fp16", None, True)):
+        path = out / f"{name}.onnx"
+        if not (reuse and path.exists()):
+            t = time.perf_counter()
+            rep = export_checkpoint(ckpt, path, kernels=kernels, fp16=fp16, threads=2)
+            print(f"exported {name:<13} in {time.perf_counter() - t:5.0f} s: kernels {rep['metadata']['kernels']}, "
+                  f"parity {max(rep['parity'].values()):.1e}", flush=True)
+        paths[name] = path
+    return paths
+
+
+def trained_loss(ckpt: Path, data: Path, out: Path, threads: int) -> None:
+    """Held-out PSNR (normalised, the training metric) of a trained checkpoint's direct and
+    default exports through the runtime, and ms per frame (median over the samples)."""
+    from neuralbokeh.data import FocalStackDataset
+    from neuralbokeh.export.exporter import export_checkpoint
+    from neuralbokeh.runtime import BokehModel
+    from neuralbokeh.training.checkpoint import load_checkpoint
+
+    if data is None:
+        raise SystemExit("error: --trained needs --data (the dataset it was trained on)")
+    split = load_checkpoint(ckpt)["train_config"]["data"]
+    test = FocalStackDataset(data, "test", split["test_fraction"], split["split_seed"], normalize=False)
+    items = [test[i] for i in range(len(test))]
+    out.mkdir(parents=True, exist_ok=True)
+    psnr = {}
+    for name, kernels in (("direct", "direct"), ("default", None)):
+        path = out / f"trained_{name}.onnx"
+        rep = export_checkpoint(ckpt, path, kernels=kernels, threads=threads)
+        model = BokehModel(path, threads=threads)
+        values, times = [], []
+        for it in items:
+            aif, coc = it["aif"].numpy().transpose(1, 2, 0), it["coc"][0].numpy()
+            t = time.perf_counter()
+            got = model.render_coc(aif, coc)
+            times.append(time.perf_counter() - t)
+            values.append(_psnr(got, it["defocus"].numpy().transpose(1, 2, 0)))
+        psnr[name] = float(np.mean(values))
+        print(f"trained {ckpt}: {name:<7} export ({rep['metadata']['kernels']}): held-out PSNR {psnr[name]:.3f} dB over "
+              f"{len(items)} samples, {1000 * statistics.median(times):.0f} ms per frame", flush=True)
+    print(f"trained: the default export costs {psnr['direct'] - psnr['default']:+.3f} dB against the direct one\n", flush=True)
+
+
+def worker(args: argparse.Namespace) -> None:
+    """One row: render the frame ``repeats`` times, print JSON, save the output (linear RGB)."""
+    data = np.load(args.frame)
+    aif, coc = data["aif"], data["coc"]
+    kind, _, arg = args.worker.partition(":")
+    if kind == "onnx":
+        from neuralbokeh.runtime import BokehModel
+
+        model = BokehModel(arg, threads=args.threads)
+
+        def run() -> np.ndarray:
+            return model.render_coc(aif, coc)
+    else:
+        import torch
+
+        from neuralbokeh.apertures import ApertureModel, parse_aperture
+        from neuralbokeh.render import scatter_defocus
+        from neuralbokeh.render.baselines import gaussian_defocus
+
+        torch.set_num_threads(args.threads)
+        a = torch.from_numpy(aif).permute(2, 0, 1)[None].double()
+        c = torch.from_numpy(coc)[None, None].double()
+        if kind == "eager":
+            from neuralbokeh.normalization import Normalization
+            from neuralbokeh.training.checkpoint import load_model
+
+            model, ckpt = load_model(arg)
+            norm = Normalization.from_dict(ckpt["normalization"])
+            x = torch.cat([torch.from_numpy(norm.encode(aif.astype(np.float64))).permute(2, 0, 1)[None], c / C_MAX], 1).float()
+
+            def run() -> np.ndarray:
+                with torch.no_grad():
+                    return norm.decode(model(x)[0].permute(1, 2, 0).double().numpy())
+        elif kind == "gaussian":
+            def run() -> np.ndarray:
+                return gaussian_defocus(a, c)[0].permute(1, 2, 0).numpy()
+        elif kind == "scatter":
+            aperture = ApertureModel(parse_aperture("polygon:7"))
+
+            def run() -> np.ndarray:
+                return scatter_defocus(a, c, aperture)[0].permute(1, 2, 0).numpy()
+        else:
+            raise ValueError(f"unknown worker {args.worker!r}")
+    out = run()  # warm-up
+    times = []
+    for _ in range(args.repeats):
+        t = time.perf_counter()
+        out = run()
+        times.append(time.perf_counter() - t)
+    np.save(args.out, np.asarray(out, dtype=np.float32))
+    print(json.dumps({"ms": 1000.0 * statistics.median(times), "rss_mb": _peak_rss_mb()}))
+
+
+def _row(spec: str, frame: Path, out: Path, threads: int, repeats: int) -> dict:
+    cmd = [sys.executable, __file__, "--worker", spec, "--frame", str(frame), "--out", str(out), "--threads", str(threads),
+           "--repeats", str(repeats)]
+    res = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
+    if res.returncode != 0:
+        raise RuntimeError(f"worker {spec} failed:\n{res.stderr[-3000:]}")
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+def _psnr(a: np.ndarray, b: np.ndarray) -> float:
+    from neuralbokeh.normalization import Normalization
+
+    norm = Normalization(0.18)
+    mse = float(np.mean(((norm.encode(a.astype(np.float64)) - norm.encode(b.astype(np.float64))) / 2.0) ** 2))
+    return 10.0 * np.log10(1.0 / mse)
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--out-dir", type=Path, default=ROOT / "runs" / "bench_runtime", help="exports, frames and outputs")
+    p.add_argument("--reuse", action="store_true", help="keep the checkpoint and exports of an earlier run")
+    p.add_argument("--threads", type=int, default=2, help="threads of the main rows (a 1-thread row is added)")
+    p.add_argument("--repeats", type=int, default=5, help="renders per row (median)")
+    p.add_argument("--seed", type=int, default=3, help="the procedural scene")
+    p.add_argument("--trained", type=Path, help="a trained lens checkpoint: held-out PSNR of its direct and default exports")
+    p.add_argument("--data", type=Path, help="the dataset --trained was trained on")
+    p.add_argument("--worker", help=argparse.SUPPRESS)
+    p.add_argument("--frame", type=Path, help=argparse.SUPPRESS)
+    p.add_argument("--out", type=Path, help=argparse.SUPPRESS)
+    args = p.parse_args()
+    if args.worker:
+        worker(args)
+        return
+    sys.path.insert(0, str(ROOT))
+    if args.trained:
+        trained_loss(args.trained, args.data, args.out_dir, args.threads)
+    paths = make_model(args.out_dir, args.reuse)
+    aif, coc, lens, truth = make_frame(args.seed)
+    frames = {}
+    for name, c in (("full", coc), ("third", coc / 3.0), ("half_in_focus", np.where(np.arange(W)[None, :] < W // 2, 0.0, coc))):
+        frames[name] = args.out_dir / f"frame_{name}.npz"
+        np.savez(frames[name], aif=aif, coc=c)
+    print(f"frame: 1920x1080 procedural scene (seed {args.seed}), f/{lens['f_number']:.2f}, |CoC| up to {np.abs(coc).max():.1f} px, "
+          f"{100 * np.mean(np.abs(coc) <= 1):.0f} % of pixels within 1 px; model k_max 41 (N = 20), {TILE} px tiles, "
+          f"initialised from the lens prior (7-blade aperture, untrained); median of {args.repeats}")
+    rows = [("runtime, default export", f"onnx:{paths['default']}", "full", args.threads),
+            ("runtime, default export, 1 thread", f"onnx:{paths['default']}", "full", 1),
+            ("runtime, default export, fp16", f"onnx:{paths['default_fp16']}", "full", args.threads),
+            ("runtime, direct-convolution export", f"onnx:{paths['direct']}", "full", args.threads),
+            ("PyTorch eager (FFT, exact)", f"eager:{paths['checkpoint']}", "full", args.threads),
+            ("exact-aperture scatter (7-gon)", "scatter", "full", args.threads),
+            ("CoC Gaussian scatter", "gaussian", "full", args.threads),
+            ("runtime, default, max CoC / 3", f"onnx:{paths['default']}", "third", args.threads),
+            ("runtime, default, half in focus", f"onnx:{paths['default']}", "half_in_focus", args.threads),
+            ("runtime, direct, max CoC / 3", f"onnx:{paths['direct']}", "third", args.threads)]
+    results = {}
+    for label, spec, frame, threads in rows:
+        out = args.out_dir / f"out_{len(results)}.npy"
+        r = _row(spec, frames[frame], out, threads, args.repeats)
+        results[label] = {**r, "frame": frame, "threads": threads, "image": np.load(out)}
+        print(f"  ran {label}: {r['ms']:.0f} ms", flush=True)
+    gauss = results["CoC Gaussian scatter"]["ms"]
+    direct = results["runtime, direct-convolution export"]
+    base_psnr = _psnr(direct["image"], truth)
+    print("\nPSNR: against the layered render of the full frame (normalised images, the training metric); dPSNR: minus the "
+          "direct export's; vs direct: PSNR of the row against the direct export's output")
+    print(f"\n{'':<38} {'frame':<14} {'thr':>3} {'ms/frame':>9} {'x Gauss':>8} {'RSS MB':>7} {'PSNR':>7} {'dPSNR':>7} {'vs direct':>9}")
+    for label, r in results.items():
+        psnr = _psnr(r["image"], truth) if r["frame"] == "full" else None
+        vs_direct = _psnr(r["image"], direct["image"]) if psnr is not None and r is not direct else None
+        print(f"{label:<38} {r['frame']:<14} {r['threads']:>3} {r['ms']:>9.0f} {r['ms'] / gauss:>8.2f} {r['rss_mb']:>7.0f} "
+              + (f"{psnr:>7.2f} {psnr - base_psnr:>+7.3f} " if psnr is not None else f"{'':>7} {'':>7} ")
+              + (f"{vs_direct:>9.2f}" if vs_direct is not None else ""))
+    ms = {k: v["ms"] for k, v in results.items()}
+    default = ms["runtime, default export"]
+    print(f"\ndefault export: {default / gauss:.2f}x the CoC Gaussian's time, {ms['runtime, direct-convolution export'] / default:.1f}x "
+          f"faster than the direct export; 1 -> {args.threads} threads {ms['runtime, default export, 1 thread'] / default:.2f}x")
+    print(f"max CoC / 3: default {default / ms['runtime, default, max CoC / 3']:.2f}x faster than the full frame "
+          f"(direct: {ms['runtime, direct-convolution export'] / ms['runtime, direct, max CoC / 3']:.2f}x); "
+          f"half in focus: {default / ms['runtime, default, half in focus']:.2f}x faster")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,133 @@
+"""Validate a dataset before any work is spent on it (``python -m neuralbokeh.data check ROOT``).
+
+Every file of every scene is read whole (a truncated EXR fails here, not at step 4 of a run) and
+checked against ``scene.json``: the image size and channels, finite values, colours >= 0, depth
+> 0 m (``+inf`` allowed), the CoC finite and equal to what the scene's lens gives for its depth
+and the slice's focus distance (``ThinLens.coc_px``, within ``coc_tolerance``), and the
+recorded largest |CoC|. Problems are collected, not raised one by one, so a user sees every bad
+file at once. ``train`` and ``neuralbokeh.evaluate`` run it before they start.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from .data import find_scenes, read_scene_meta
+from .io import read_image
+from .optics import ThinLens
+
+log = logging.getLogger(__name__)
+
+# |CoC file - lens(depth, focus)| allowed, px: relative to the CoC (float32/half files) plus an absolute floor
+COC_RTOL, COC_ATOL = 2e-3, 2e-3
+
+
+def _first_bad(mask: np.ndarray) -> str:
+    r, c = np.unravel_index(int(np.argmax(mask)), mask.shape[:2])
+    return f"{int(mask.sum())} pixel(s), first at (row {r}, col {c})"
+
+
+def check_scene(folder: str | os.PathLike, coc_tolerance: tuple[float, float] = (COC_RTOL, COC_ATOL)) -> list[str]:
+    """Problems found in one scene folder (empty: the scene is sound). Each names the file."""
+    folder = Path(folder)
+    try:
+        meta = read_scene_meta(folder)
+    except (OSError, ValueError) as e:
+        return [str(e)]
+    problems: list[str] = []
+    h, w = meta["image_size"]["height"], meta["image_size"]["width"]
+
+    def load(name: str, channels: int) -> np.ndarray | None:
+        try:
+            arr = read_image(folder / name)
+        except OSError as e:
+            problems.append(f"{folder / name}: unreadable ({' '.join(str(e).split())[:200]})")
+            return None
+        if arr.shape != (h, w, channels):
+            problems.append(f"{folder / name}: shape (H, W, C) {arr.shape}, expected {(h, w, channels)} from scene.json")
+            return None
+        return arr
+
+    def colour(name: str) -> None:
+        arr = load(name, 3)
+        if arr is None:
+            return
+        if not np.isfinite(arr).all():
+            problems.append(f"{folder / name}: non-finite colour at {_first_bad(~np.isfinite(arr).all(-1))}")
+        elif (arr < 0).any():
+            problems.append(f"{folder / name}: negative colour (min {arr.min():.4g}) at {_first_bad((arr < 0).any(-1))}")
+
+    colour(meta["files"]["aif"])
+    depth = load(meta["files"]["depth"], 1)
+    if depth is not None:
+        depth = depth[..., 0].astype(np.float64)
+        bad = np.isnan(depth) | (depth <= 0) | (depth == -np.inf)
+        if bad.any():
+            problems.append(f"{folder / meta['files']['depth']}: depth must be > 0 m (+inf allowed), got "
+                            f"{depth[bad].flat[0]} at {_first_bad(bad)}")
+            depth = None
+    try:
+        lens = ThinLens.from_dict(meta["lens"])
+    except (KeyError, TypeError, ValueError) as e:
+        problems.append(f"{folder / 'scene.json'}: bad lens {meta['lens']!r} ({e})")
+        lens = None
+    largest = 0.0
+    rtol, atol = coc_tolerance
+    for k, sl in enumerate(meta["slices"]):
+        colour(sl["defocus"])
+        coc = load(sl["coc"], 1)
+        if coc is None:
+            continue
+        coc = coc[..., 0].astype(np.float64)
+        if not np.isfinite(coc).all():
+            problems.append(f"{folder / sl['coc']}: non-finite CoC at {_first_bad(~np.isfinite(coc))}")
+            continue
+        largest = max(largest, float(np.abs(coc).max()))
+        if depth is not None and lens is not None:
+            try:
+                want = lens.coc_px(depth, float(sl["focus_m"]), w, signed=True)
+            except (KeyError, ValueError) as e:
+                problems.append(f"{folder / 'scene.json'}: slice {k}: {e}")
+                continue
+            off = np.abs(coc - want) > rtol * np.abs(want) + atol
+            if off.any():
+                i = np.unravel_index(int(np.argmax(np.abs(coc - want))), coc.shape)
+                problems.append(f"{folder / sl['coc']}: CoC differs from the lens and focus of scene.json "
+                                f"(focus {sl['focus_m']} m) by up to {abs(coc[i] - want[i]):.4g} px "
+                                f"({coc[i]:.4g} vs {want[i]:.4g} at (row {i[0]}, col {i[1]})), {_first_bad(off)}")
+    recorded = float(meta["max_abs_coc_px"])
+    if largest > recorded * (1 + rtol) + atol:
+        problems.append(f"{folder / 'scene.json'}: max_abs_coc_px {recorded:.4g} is below the largest |CoC| of "
+                        f"its files, {largest:.4g} px")
+    return problems
+
+
+def check_dataset(roots: str | os.PathLike | Sequence[str | os.PathLike], progress: bool = False) -> list[str]:
+    """Problems found in every scene under ``roots`` (empty: the dataset is sound).
+
+    Raises:
+        FileNotFoundError / ValueError: a root is missing or holds no scenes (see ``find_scenes``).
+    """
+    scenes = find_scenes(roots)
+    it = scenes
+    if progress:
+        from tqdm import tqdm
+
+        it = tqdm(scenes, desc="checking scenes", unit="scene")
+    problems = [p for folder in it for p in check_scene(folder)]
+    log.info("checked %d scenes: %d problem(s)", len(scenes), len(problems))
+    return problems
+
+
+def require_sound(roots: str | os.PathLike | Sequence[str | os.PathLike], progress: bool = False) -> None:
+    """:func:`check_dataset`, raising one ``ValueError`` that lists every problem (at most 20 shown)."""
+    problems = check_dataset(roots, progress)
+    if problems:
+        shown = "; ".join(problems[:20]) + (f"; ... and {len(problems) - 20} more" if len(problems) > 20 else "")
+        raise ValueError(f"dataset check failed ({len(problems)} problem(s); run `python -m neuralbokeh.data check` "
+                         f"for the list): {shown}")
