@@ -25,10 +25,11 @@ def _one_error_line(r: subprocess.CompletedProcess, *needles: str) -> None:
 def test_train_mistakes(tmp_path, tiny_dataset):
     empty = tmp_path / "empty"
     empty.mkdir()
-    _one_error_line(_run("train.py", "configs/quickstart.toml", f"data.roots=['{tmp_path / 'missing'}']"), "missing")
-    _one_error_line(_run("train.py", "configs/quickstart.toml", f"data.roots=['{empty}']"), str(empty))
+    out = f"train.out_dir='{tmp_path / 'out'}'"  # not the config's runs/quickstart, which may hold a run
+    _one_error_line(_run("train.py", "configs/quickstart.toml", f"data.roots=['{tmp_path / 'missing'}']", out), "missing")
+    _one_error_line(_run("train.py", "configs/quickstart.toml", f"data.roots=['{empty}']", out), str(empty))
     # a typo in an override is reported as the override, not against the config file
-    _one_error_line(_run("train.py", "configs/quickstart.toml", "train.stpes=3"), "override 'train.stpes=3'", "'stpes'")
+    _one_error_line(_run("train.py", "configs/quickstart.toml", "train.stpes=3", out), "override 'train.stpes=3'", "'stpes'")
     # overrides after options are taken; the missing --resume checkpoint is named
     missing = tmp_path / "nope.pt"
     r = _run("train.py", "configs/quickstart.toml", "--resume", str(missing), f"data.roots=['{tiny_dataset}']",
