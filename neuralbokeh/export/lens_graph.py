@@ -129,11 +129,11 @@ def _band(b: _Builder, k: int, n: int, side: int, pos: str, side_mask: str, src_
     zero, inv = g.c("zero", 0.0), g.c("inv_margin", 1.0 / margin)
     near = g.op("Clip", g.op("Mul", g.op("Sub", g.op("Neg", delta), g.c("margin", margin)), inv), zero, one)
     far = g.op("Clip", g.op("Mul", g.op("Sub", delta, g.c("margin", margin)), inv), zero, one)
-    near_part, far_part = g.op("Mul", out, near), g.op("Mul", out, far)
-    # per band, not once after the sum: all - near - far of summed 1e4 highlights cancels in float32
-    same_part = g.op("Sub", g.op("Sub", out, near_part), far_part)
-    parts = g.op("Concat", near_part, same_part, far_part, axis=1)
-    return _branch(g, g.op("Unsqueeze", parts, g.c("ax0", [0], np.int64)), f"t{k}_band{n}_{side}")
+    same = g.op("Sub", g.op("Sub", one, near), far)
+    # one broadcast product (B, 3, 1) x (B, 1, 6) -> (1, B, 18): the 18 channels are written once
+    weights = g.op("Unsqueeze", g.op("Concat", near, same, far, axis=1), g.c("ax2", [2], np.int64))
+    parts = g.op("Mul", weights, g.op("Unsqueeze", out, g.c("ax1u", [1], np.int64)))
+    return _branch(g, g.op("Reshape", parts, g.c("shape18", [1, -1, 18, win, win], np.int64)), f"t{k}_band{n}_{side}")
 
 
 def _tile(b: _Builder, k: int, window: str, kernels: Mapping[int, np.ndarray], scales: Mapping[int, int], src: np.ndarray,
