@@ -326,13 +326,13 @@ def main(argv: list[str] | None = None) -> int:
     check.add_argument("roots", nargs="+", help="dataset folders (each holding scene folders)")
     check.add_argument("-v", "--verbose", action="store_true", help="tracebacks with errors")
     args = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stdout)  # the report is the CLI's output
     t = time.perf_counter()
     problems = check_dataset(args.roots, progress=sys.stderr.isatty())
     for line in problems:
-        print(line)
-    n = len(find_scenes(args.roots))
-    print(f"{n} scene(s) checked in {time.perf_counter() - t:.1f} s: "
-          + (f"{len(problems)} problem(s)" if problems else "no problems"))
+        log.info("%s", line)
+    log.info("%d scene(s) checked in %.1f s: %s", len(find_scenes(args.roots)), time.perf_counter() - t,
+             f"{len(problems)} problem(s)" if problems else "no problems")
     return 1 if problems else 0
 
 

@@ -120,7 +120,7 @@ def check_dataset(roots: str | os.PathLike | Sequence[str | os.PathLike], progre
 
         it = tqdm(scenes, desc="checking scenes", unit="scene")
     problems = [p for folder in it for p in check_scene(folder)]
-    log.info("checked %d scenes: %d problem(s)", len(scenes), len(problems))
+    log.debug("checked %d scenes: %d problem(s)", len(scenes), len(problems))
     return problems
 
 
