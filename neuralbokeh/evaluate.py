@@ -30,6 +30,7 @@ import statistics
 import sys
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -85,54 +86,52 @@ def baseline_methods(names: list[str], aperture: ApertureModel | None) -> dict[s
     return {n: table[n] for n in names}
 
 
-def model_method(path: Path, threads: int, size: tuple[int, int] | None = None) -> Method:
-    """A trained model: ``.onnx`` (onnxruntime, in-focus tiles skipped) or a ``.pt`` checkpoint.
+@dataclass
+class LoadedModel:
+    """A trained model ready to run: ``run`` (a :data:`Method`), the image ``size`` ``(H, W)`` it
+    was built for and its training ``split`` (``{"test_fraction", "split_seed"}``, or None when
+    the file does not record it)."""
 
-    ``size`` ``(H, W)``: the data's image size; a model built for another size is refused here,
-    before any work."""
+    run: Method
+    size: tuple[int, int]
+    split: dict[str, Any] | None
+
+
+def load_model_method(path: Path, threads: int) -> LoadedModel:
+    """A trained model: ``.onnx`` (onnxruntime, in-focus tiles and unused bands skipped; its
+    metadata read once by the runtime) or a ``.pt`` checkpoint (read once)."""
     if path.suffix == ".onnx":
         from .runtime import BokehModel
 
         m = BokehModel(path, threads=threads)
-        if size is not None and (m.height, m.width) != tuple(size):
-            raise ValueError(f"{path} is for {m.width}x{m.height} images, the data is {size[1]}x{size[0]}")
-        return lambda aif, coc: m.render_coc(aif, coc)
+        return LoadedModel(lambda aif, coc: m.render_coc(aif, coc), (m.height, m.width), m.meta.get("data_split"))
     from .training.checkpoint import load_model
 
     model, ckpt = load_model(path)
     cfg = model.config
-    if size is not None and (cfg.image_height, cfg.image_width) != tuple(size):
-        raise ValueError(f"{path} is for {cfg.image_width}x{cfg.image_height} images, the data is {size[1]}x{size[0]}")
     norm, scale = Normalization.from_dict(ckpt["normalization"]), float(ckpt["coc_scale_px"])
+    data = ckpt.get("train_config", {}).get("data")
 
     def run(aif: np.ndarray, coc: np.ndarray) -> np.ndarray:
         x = np.concatenate([norm.encode(aif.astype(np.float64)).transpose(2, 0, 1), coc[None] / scale])
         with torch.no_grad():
             y = model(torch.from_numpy(x[None]).float())[0].double().numpy()
         return norm.decode(y).transpose(1, 2, 0)
-    return run
+    split = {k: data[k] for k in ("test_fraction", "split_seed")} if data else None
+    return LoadedModel(run, (cfg.image_height, cfg.image_width), split)
 
 
-def split_of_models(models: list[Path], test_fraction: float | None, split_seed: int | None) -> tuple[float, int]:
-    """The scene split to score: the one given, else the training run's (``train_config`` of a
-    ``.pt`` checkpoint, ``data_split`` of an exported model), so that training scenes are not
-    scored as held out by accident; else (0.2, 0). A given value that differs from a model's
-    training split is logged as a warning."""
-    recorded = None
-    for path in models:
-        split = None
-        if path.suffix == ".onnx" and path.is_file():
-            import onnx
+def model_method(path: Path, threads: int) -> Method:
+    """:func:`load_model_method`'s runnable alone."""
+    return load_model_method(path, threads).run
 
-            meta = {p.key: p.value for p in onnx.load(str(path), load_external_data=False).metadata_props}
-            split = json.loads(meta.get("neuralbokeh", "{}")).get("data_split")
-        elif path.is_file():
-            from .training.checkpoint import load_checkpoint
 
-            data = load_checkpoint(path).get("train_config", {}).get("data")
-            split = {k: data[k] for k in ("test_fraction", "split_seed")} if data else None
-        if split:
-            recorded = recorded or (float(split["test_fraction"]), int(split["split_seed"]))
+def split_of_models(models: list[LoadedModel], test_fraction: float | None, split_seed: int | None) -> tuple[float, int]:
+    """The scene split to score: the one given, else the training run's (the first model that
+    records it: ``train_config`` of a checkpoint, ``data_split`` of an export), so that training
+    scenes are not scored as held out by accident; else (0.2, 0). A given value that differs from
+    the model's training split is logged as a warning."""
+    recorded = next(((float(m.split["test_fraction"]), int(m.split["split_seed"])) for m in models if m.split), None)
     fraction = test_fraction if test_fraction is not None else recorded[0] if recorded else 0.2
     seed = split_seed if split_seed is not None else recorded[1] if recorded else 0
     if recorded and (fraction, seed) != recorded:
@@ -296,7 +295,8 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
     try:
         require_sound(args.data)
-        test_fraction, split_seed = split_of_models(args.models, args.test_fraction, args.split_seed)
+        loaded = {str(m.name): load_model_method(m, args.threads) for m in args.models}
+        test_fraction, split_seed = split_of_models(list(loaded.values()), args.test_fraction, args.split_seed)
         ds = FocalStackDataset(args.data, args.split, test_fraction if args.split != "all" else 0.0, split_seed, normalize=False)
         if len(ds) == 0:
             raise ValueError(f"{args.data}: no samples in split {args.split!r} with test_fraction {test_fraction}")
@@ -306,7 +306,10 @@ def main(argv: list[str] | None = None) -> int:
         aperture = ApertureModel.from_dict(ds.metas[0]["aperture"]) if len(apertures) == 1 and ds.metas[0]["aperture"] else None
         names = [] if args.baselines == "none" else list(BASELINES) if args.baselines == "all" else args.baselines.split(",")
         size = tuple(samples[0]["aif"].shape[-2:])
-        methods = {str(m.name): model_method(m, args.threads, size) for m in args.models}
+        for name, m in loaded.items():  # refused before any work
+            if m.size != size:
+                raise ValueError(f"{name} is for {m.size[1]}x{m.size[0]} images, the data is {size[1]}x{size[0]}")
+        methods = {name: m.run for name, m in loaded.items()}
         methods.update(baseline_methods(names, aperture))
         if not methods:
             raise ValueError("nothing to evaluate: give --models and/or --baselines")

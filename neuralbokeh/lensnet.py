@@ -117,7 +117,8 @@ def reduction_matrix(k: int, s: int, dtype: torch.dtype = torch.float64, device:
     """``(k_s, k)`` weights that bin a ``k``-tap kernel (centred) into taps ``s`` px apart.
 
     Tap ``J`` of the reduced kernel takes the offsets ``o`` with ``|o - s J| < s / 2`` whole and
-    those at exactly ``s / 2`` by half, so the reduced kernel keeps the sum and the centroid.
+    those at exactly ``s / 2`` by half: the reduced kernel keeps the sum, and a point-symmetric
+    kernel stays centred (an off-centre one may move by up to ``(s - 1) / 2`` px).
     """
     h = k // 2
     j_max = int(math.floor((h + s / 2) / s))

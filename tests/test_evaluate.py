@@ -114,7 +114,7 @@ def test_report_files_and_identity_row(tiny_dataset, busy_onnx, tmp_path):
 
 
 def test_split_all_and_the_default_split_follows_the_training_run(tiny_dataset, busy_checkpoint, busy_onnx, tmp_path):
-    from neuralbokeh.evaluate import split_of_models
+    from neuralbokeh.evaluate import load_model_method, split_of_models
     from neuralbokeh.training.checkpoint import load_checkpoint, save_checkpoint
 
     rc = main(["--data", str(tiny_dataset), "--baselines", "identity", "--split", "all", "--out", str(tmp_path / "all"),
@@ -126,8 +126,9 @@ def test_split_all_and_the_default_split_follows_the_training_run(tiny_dataset, 
     data = load_checkpoint(busy_checkpoint)
     data["train_config"]["data"].update(test_fraction=0.4, split_seed=7)
     other = save_checkpoint(tmp_path / "other.pt", {k: v for k, v in data.items() if k not in ("format", "format_version", "package_version")})
-    assert split_of_models([other], None, None) == (0.4, 7)
-    assert split_of_models([other], 0.2, None) == (0.2, 7)  # a given value wins (with a warning)
+    loaded = load_model_method(other, 1)
+    assert split_of_models([loaded], None, None) == (0.4, 7)
+    assert split_of_models([loaded], 0.2, None) == (0.2, 7)  # a given value wins (with a warning)
     trained = load_checkpoint(busy_checkpoint)["train_config"]["data"]
-    assert split_of_models([busy_onnx], None, None) == (trained["test_fraction"], trained["split_seed"])
+    assert split_of_models([load_model_method(busy_onnx, 1)], None, None) == (trained["test_fraction"], trained["split_seed"])
     assert split_of_models([], None, None) == (0.2, 0)
