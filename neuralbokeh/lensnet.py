@@ -35,7 +35,7 @@ The skeleton of the paper, given what a lens blur is made of:
    bucket light is summed, so neighbouring bands of one sloped surface never occlude each
    other; across buckets it is composited near over same over far with sum-to-saturation
    (light-field patent). Coverage that stays below 1 (what foregrounds hide in the AIF) is
-   filled by normalising (``fill_holes`` of the reference renderer).
+   filled by normalising (``fill="normalize"`` of the reference renderer).
 6. *Reassembly.* Each tile scatters the light of its own core (cores partition the image; at
    the image border a core reaches to its window's edge), into its whole window; windows are
    summed into place (light adds, so a tile's blur crosses into its neighbours' cores exactly as

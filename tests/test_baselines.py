@@ -51,7 +51,9 @@ def test_buckets_point_light_is_the_aperture_and_keeps_flux():
 @pytest.mark.parametrize("left, right", [(0.0, 9.0), (-9.0, 0.0)])
 def test_buckets_step_edge_matches_the_occlusion_aware_scatter(left, right):
     x, c = _step(left, right)
-    out, ref = bucket_gather(x, c, HEPTAGON), scatter_defocus(x, c, HEPTAGON)
+    # the patent fills what a blurred foreground uncovers with the foreground's own colours
+    # (normalising), the scatter's fill="normalize"
+    out, ref = bucket_gather(x, c, HEPTAGON), scatter_defocus(x, c, HEPTAGON, fill="normalize")
     assert float((out - ref).abs().max()) < 1e-9
     if left == 0.0:  # sharp bright foreground, blurred background: nothing leaks behind the edge
         assert torch.allclose(out[..., SIZE // 2 :], x[..., SIZE // 2 :], atol=1e-12)

@@ -155,6 +155,65 @@ def procedural_scene(mi: ModuleType, rng: np.random.Generator, camera: Camera, p
     return scene, {"objects": desc}
 
 
+OCCLUSION_WALL_M, OCCLUSION_FG_FOCUS_M = 3.0, 0.85  # the wall's depth, a focus on the foreground
+
+
+def occlusion_scene(mi: ModuleType, cam: Camera, seed: int, highlights: int = 14) -> dict[str, Any]:
+    """A scene with continuous depth and strong occlusion, for testing renderers on depth maps.
+
+    A textured sphere, a tilted board and a box in the foreground (0.8-1.1 m) stand on a floor
+    that runs back to a textured wall (:data:`OCCLUSION_WALL_M`); ``highlights`` small HDR
+    emitters (radiance 10-200) sit on the surfaces, half of them on the foreground, placed on
+    the depth map of the scene without them, so an AIF + depth describes them. Focus
+    on the wall to blur the foreground over a sharp background, on
+    :data:`OCCLUSION_FG_FOCUS_M` for the reverse. Made for the pinhole camera of
+    ``benchmarks/bench_continuous.py`` (85 mm on 36 mm, looking along +z).
+
+    Returns:
+        The scene dict without a sensor.
+    """
+    from .render import render_depth  # render imports this module
+
+    T = mi.ScalarTransform4f
+    rng = np.random.default_rng(seed)
+
+    def tex() -> dict[str, Any]:
+        return {"type": "diffuse", "reflectance": {"type": "bitmap", "bitmap": mi.Bitmap(_texture(rng)), "raw": True}}
+
+    half = cam.tan_half_x * OCCLUSION_WALL_M * 1.3
+    scene: dict[str, Any] = {
+        "type": "scene", "integrator": {"type": "path", "max_depth": 3},
+        "environment": {"type": "constant", "radiance": {"type": "rgb", "value": 1.0}},
+        "wall": {"type": "rectangle", "bsdf": tex(),
+                 "to_world": T().translate([0.0, 0.0, OCCLUSION_WALL_M]).rotate([0, 1, 0], 180.0).scale([half, half, 1.0])},
+        # the floor: a horizontal plane 0.1 m below the axis, from 0.6 m to the wall
+        "floor": {"type": "rectangle", "bsdf": tex(),
+                  "to_world": T().translate([0.0, -0.1, 1.8]).rotate([1, 0, 0], -90.0).scale([half, 1.2, 1.0])},
+        "sphere": {"type": "sphere", "center": [-0.03, -0.04, 0.8 + 0.06], "radius": 0.06, "bsdf": tex()},
+        "board": {"type": "rectangle", "bsdf": tex(),
+                  "to_world": T().translate([0.09, 0.0, 0.9]).rotate([0, 1, 0], 180.0 + 55.0).scale([0.035, 0.07, 1.0])},
+        "box": {"type": "cube", "bsdf": tex(),
+                "to_world": T().translate([-0.11, -0.07, 0.95]).rotate([0, 1, 0], 35.0).scale(0.025)},
+    }
+    depth = render_depth(mi, mi.load_dict(scene), cam)
+    tx = ((np.arange(cam.width) + 0.5) / cam.width * 2.0 - 1.0) * cam.tan_half_x
+    ty = ((np.arange(cam.height) + 0.5) / cam.height * 2.0 - 1.0) * cam.tan_half_x * cam.height / cam.width
+    near = np.argwhere(depth < 1.2)  # half of the highlights on the foreground objects
+    for i in range(highlights):
+        if i % 2 and len(near):
+            r, c = (int(v) for v in near[rng.integers(len(near))])
+        else:
+            r, c = int(rng.integers(cam.height)), int(rng.integers(cam.width))
+        z = float(depth[r, c]) * 0.995
+        if not np.isfinite(z):
+            continue
+        radius = z * cam.tan_half_x * 2.0 / cam.width * 0.45  # under a pixel: one depth sample sees it
+        colour = rng.uniform(0.6, 1.0, 3) * float(np.exp(rng.uniform(np.log(10.0), np.log(200.0))))
+        scene[f"light{i}"] = {"type": "sphere", "center": [-tx[c] * z, -ty[r] * z, z], "radius": radius,
+                              "emitter": {"type": "area", "radiance": {"type": "rgb", "value": colour.tolist()}}}
+    return scene
+
+
 def camera_from_xml(mi: ModuleType, path: Path, params: dict[str, str] | None = None) -> tuple[Any, Camera]:
     """Load a user's Mitsuba scene (``params``: values of its ``$name`` parameters) and its
     first sensor's pinhole camera.

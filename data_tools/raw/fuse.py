@@ -5,8 +5,11 @@
    pre-filter (sigma 0.7 px: sensor noise and the resampling of alignment then weigh alike
    on every slice), averaged by a Gaussian of ``window_px``.
 2. Depth from focus, in diopters (1 / m), where the focus measure of a scene point peaks:
-   the best slice per pixel, refined by a parabola through it and its neighbours in diopter
-   coordinates (slices need not be evenly spaced). Confidence in [0, 1]: how far the peak
+   the best slice per pixel, refined by a parabola through the *log* of the measure at it and
+   its neighbours in diopter coordinates (slices need not be evenly spaced). The measure falls
+   off about like a Gaussian of defocus, whose log is a parabola; a parabola through the
+   measure itself sits at the best slice whenever the neighbours are near zero, which locks
+   depth onto the slices. Confidence in [0, 1]: how far the peak
    stands above the stack's mean response, times a texture term ``f / (f + floor)``.
 3. Edge-aware regularisation: normalised convolution with a guided filter (He et al.; kornia's
    ``guided_blur``, separable box means: memory O(pixels) and time O(radius) per pixel, where
@@ -15,17 +18,26 @@
    ``c D + (1 - c) D_reg``; low-texture regions take the depth of their surroundings with the
    same colour instead of noise.
 4. Fusion: every pixel takes the two slices focused nearest to its regularised diopter,
-   interpolated linearly. Using the regularised depth rather than the raw per-pixel argmax is
+   interpolated linearly.
+
+Slices focused at the same distance, or within ``merge_diopters`` of each other (a stack shot
+at two apertures), are one focus position: of each such group only the slice with the highest
+mean focus measure is kept (logged), so no two slices bracket a pixel with a zero gap. Using the regularised depth rather than the raw per-pixel argmax is
    what avoids halos: the selection changes at colour edges, not half a window away from them.
 """
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 from kornia.filters import gaussian_blur2d, guided_blur, laplacian
+
+log = logging.getLogger(__name__)
+
+SHARPEST_GAIN = 16.0  # fusion weights ~ focus measure ** 16: the sharpest slice, blended where two tie
 
 
 @dataclass
@@ -61,7 +73,8 @@ def _peak_diopters(fm: torch.Tensor, diopters: np.ndarray) -> tuple[torch.Tensor
     best = fm.argmax(dim=0)
     peak = fm.max(dim=0).values
     lo, hi = (best - 1).clamp(min=0), (best + 1).clamp(max=k_count - 1)
-    f0, f1, f2 = fm.gather(0, lo[None])[0], peak, fm.gather(0, hi[None])[0]
+    tiny = 1e-6 * float(fm.mean()) + 1e-300
+    f0, f1, f2 = (torch.log(v + tiny) for v in (fm.gather(0, lo[None])[0], peak, fm.gather(0, hi[None])[0]))
     x0, x1, x2 = d[lo], d[best], d[hi]
     # vertex of the parabola through (x0, f0), (x1, f1), (x2, f2); ends of the stack keep x1
     den = (x0 - x1) * (x0 - x2) * (x1 - x2)
@@ -91,15 +104,49 @@ def _regularise(depth: torch.Tensor, confidence: torch.Tensor, guide: torch.Tens
     return confidence * depth + (1.0 - confidence) * smooth
 
 
+def merge_focus_duplicates(diopters: np.ndarray, sharpness: np.ndarray, tolerance: float) -> list[int]:
+    """Indices of the slices to keep: of every run of slices whose sorted focus positions lie
+    within ``tolerance`` diopters of the previous one, the one with the highest ``sharpness``."""
+    order = np.argsort(diopters, kind="stable")
+    groups: list[list[int]] = [[int(order[0])]]
+    for i in order[1:]:
+        if diopters[i] - diopters[groups[-1][-1]] <= tolerance:
+            groups[-1].append(int(i))
+        else:
+            groups.append([int(i)])
+    keep = sorted(max(g, key=lambda i: sharpness[i]) for g in groups)
+    for g in groups:
+        if len(g) > 1:
+            log.info("slices %s are focused within %.3g diopters of each other: kept slice %d, the sharpest",
+                     g, tolerance, max(g, key=lambda i: sharpness[i]))
+    return keep
+
+
 def fuse_stack(slices: list[np.ndarray], focus_m: list[float], window_px: float = 2.0,
-               known_diopters: np.ndarray | None = None) -> FusionResult:
+               known_diopters: np.ndarray | None = None, merge_diopters: float | None = None) -> FusionResult:
     """All-in-focus image and depth from ``K >= 2`` aligned ``(H, W, 3)`` linear slices focused
     at ``focus_m`` (m, > 0, inf allowed). ``known_diopters`` ``(H, W)`` (1/m, >= 0): a known depth
-    (e.g. from multi-view reconstruction) used instead of depth from focus."""
+    (e.g. from multi-view reconstruction) used instead of depth from focus. ``merge_diopters``
+    (1/m, >= 0): slices focused closer than this are one focus position (default: 2 % of the
+    stack's diopter range; see the module doc).
+
+    Raises:
+        ValueError: fewer than two slices or distances, a distance that is not > 0, or fewer than
+            two distinct focus positions.
+    """
     if len(slices) != len(focus_m) or len(slices) < 2:
         raise ValueError(f"need >= 2 slices with one focus distance each, got {len(slices)} slices, {len(focus_m)} distances")
+    bad = [f for f in focus_m if not f > 0]
+    if bad:
+        raise ValueError(f"focus distances must be > 0 m (inf allowed), got {bad[0]}")
     diopters = np.array([0.0 if np.isinf(f) else 1.0 / f for f in focus_m], dtype=np.float64)
     fm = focus_measure(slices, window_px)
+    tolerance = 0.02 * float(np.ptp(diopters)) if merge_diopters is None else float(merge_diopters)
+    keep = merge_focus_duplicates(diopters, fm.mean(dim=(1, 2)).numpy(), tolerance)
+    if len(keep) < 2:
+        raise ValueError(f"need >= 2 distinct focus distances, got {sorted(set(focus_m))} m (within {tolerance:.3g} diopters)")
+    if len(keep) < len(slices):
+        slices, diopters, fm = [slices[i] for i in keep], diopters[keep], fm[keep]
     raw_d, conf = _peak_diopters(fm, diopters)
     stack = torch.stack([_chw(s)[0] for s in slices]).double()  # (K, 3, H, W)
     first = stack.gather(0, fm.argmax(dim=0)[None, None].expand(1, 3, *fm.shape[1:]))[0]
@@ -113,7 +160,20 @@ def fuse_stack(slices: list[np.ndarray], focus_m: list[float], window_px: float 
         conf = torch.ones_like(d)
     else:
         d = _regularise(raw_d, conf, guide.float().double())
-    # blend the two slices whose focus brackets each pixel's diopter (diopters sorted ascending)
+    if known_diopters is None:
+        aif = (torch.softmax(SHARPEST_GAIN * torch.log(fm + 1e-12 * float(fm.mean()) + 1e-300), dim=0)[:, None] * stack).sum(0)
+    else:
+        aif = _bracket_blend(stack, diopters, d)
+    dio = d.numpy()
+    with np.errstate(divide="ignore"):
+        depth = np.where(dio > 0, 1.0 / np.maximum(dio, 1e-300), np.inf)
+    return FusionResult(aif.numpy().transpose(1, 2, 0).astype(np.float32), depth.astype(np.float32), dio.astype(np.float32),
+                        conf.numpy().astype(np.float32))
+
+
+def _bracket_blend(stack: torch.Tensor, diopters: np.ndarray, d: torch.Tensor) -> torch.Tensor:
+    """``(3, H, W)``: the two slices of ``(K, 3, H, W)`` whose focus brackets each pixel's
+    diopter ``d`` ``(H, W)``, interpolated linearly."""
     order = np.argsort(diopters)
     ds = torch.as_tensor(diopters[order])
     idx = torch.searchsorted(ds, d.contiguous()).clamp(1, len(ds) - 1)
@@ -122,9 +182,4 @@ def fuse_stack(slices: list[np.ndarray], focus_m: list[float], window_px: float 
     s_sorted = stack[torch.as_tensor(order)]
     lo = s_sorted.gather(0, (idx - 1)[None, None].expand(1, 3, *d.shape))[0]
     hi = s_sorted.gather(0, idx[None, None].expand(1, 3, *d.shape))[0]
-    aif = (1 - t) * lo + t * hi
-    dio = d.numpy()
-    with np.errstate(divide="ignore"):
-        depth = np.where(dio > 0, 1.0 / np.maximum(dio, 1e-300), np.inf)
-    return FusionResult(aif.numpy().transpose(1, 2, 0).astype(np.float32), depth.astype(np.float32), dio.astype(np.float32),
-                        conf.numpy().astype(np.float32))
+    return (1 - t) * lo + t * hi

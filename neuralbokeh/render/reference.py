@@ -34,8 +34,10 @@ def reference_scatter_layers(
     aperture: ApertureModel | None = None,
     fill_holes: bool = True,
     preserve_uniform: bool = False,
+    surface_px: float = 0.0,
+    background: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Literal scatter + back-to-front over of fronto-parallel layers.
+    """Literal scatter + back-to-front compositing of fronto-parallel layers.
 
     Args:
         colors: ``(L, 3, H, W)`` premultiplied linear RGB.
@@ -44,6 +46,12 @@ def reference_scatter_layers(
         aperture: aperture model (default disk).
         fill_holes: divide by the accumulated coverage (as the fast path).
         preserve_uniform: divide each layer by its scatter of a uniform field (as the fast path).
+        surface_px: 0: "over" (a layer of blurred coverage ``a`` scales everything behind it by
+            ``1 - a``). Else a layer adds to the layers within ``surface_px`` behind it (with
+            it, coverage ``a``) and scales those farther (coverage ``A``) by
+            ``min(1, max(0, 1 - a) / A)``.
+        background: ``(3, H, W)``: divide by the coverage where it exceeds 1 and add
+            ``(1 - coverage) * background`` where it falls short (``fill_holes`` is ignored).
 
     Returns:
         ``(3, H, W)`` float64.
@@ -55,8 +63,7 @@ def reference_scatter_layers(
     n_a = 3 if aperture.chromatic else 1
     n_u = n_a if aperture.spatially_varying else 0  # uniform-field response channels
     pad = max(aperture.kernel_radius_px(abs(c)) for c in coc_px)
-    out_c = np.zeros((3, h, w))
-    out_a = np.zeros((n_a, h, w))
+    done: list[tuple[int, np.ndarray, np.ndarray]] = []  # (layer, colour, coverage) so far
     for i in sorted(range(n_layers), key=lambda j: -coc_px[j]):  # far to near
         c = coc_px[i]
         rad = aperture.kernel_radius_px(abs(c))
@@ -85,8 +92,23 @@ def reference_scatter_layers(
             color = layer[:3] / np.broadcast_to(u, (3, h, w)) if preserve_uniform else layer[:3]
             layer = np.concatenate([color, layer[3 : 3 + n_a] / u])
         cc, aa = layer[:3], np.clip(layer[3:], 0.0, 1.0)
-        out_c = cc + (1.0 - aa) * out_c
-        out_a = aa + (1.0 - aa) * out_a
+        done.append((i, cc, aa))
+        hidden = [j for j, (k, _, _) in enumerate(done[:-1]) if surface_px <= 0 or coc_px[k] > c + surface_px]
+        if surface_px <= 0:
+            keep = 1.0 - aa
+        else:  # only the light of the hidden layers that does not fit beside this surface's
+            behind = sum((done[j][2] for j in hidden), np.zeros_like(aa))
+            beside = sum((d[2] for j, d in enumerate(done) if j not in hidden), np.zeros_like(aa))
+            keep = np.ones_like(aa)
+            full = beside + behind > 1.0
+            keep[full] = np.minimum(np.maximum(1.0 - beside[full], 0.0) / np.maximum(behind[full], 1e-6), 1.0)
+        for j in hidden:
+            k, jc, ja = done[j]
+            done[j] = (k, keep * jc, keep * ja)
+    out_c = sum(d[1] for d in done)
+    out_a = sum(d[2] for d in done)
+    if background is not None:
+        return out_c / np.maximum(out_a, 1.0) + np.maximum(1.0 - out_a, 0.0) * background
     if fill_holes:
         cover = np.broadcast_to(out_a, (3, h, w))
         out_c = np.where(cover > 1e-6, out_c / np.maximum(cover, 1e-6), out_c)
@@ -94,11 +116,18 @@ def reference_scatter_layers(
 
 
 def reference_scatter_defocus(
-    aif: np.ndarray, coc: np.ndarray, aperture: ApertureModel | None = None, coc_step: float = 0.5
+    aif: np.ndarray,
+    coc: np.ndarray,
+    aperture: ApertureModel | None = None,
+    coc_step: float = 0.5,
+    surface_px: float = 4.0,
+    background: np.ndarray | None = None,
 ) -> np.ndarray:
     """Slice ``(3, H, W)`` AIF by ``round(coc / coc_step)`` and scatter the slices literally.
 
-    Each slice uses the mean CoC of its pixels. Returns ``(3, H, W)`` float64.
+    Each slice uses the mean CoC of its pixels; ``surface_px`` and ``background`` as in
+    :func:`reference_scatter_layers` (without a background the result is divided by the
+    coverage). Returns ``(3, H, W)`` float64.
     """
     aif = np.asarray(aif, dtype=np.float64)
     coc = np.asarray(coc, dtype=np.float64)
@@ -106,4 +135,4 @@ def reference_scatter_defocus(
     slices = sorted(set(idx.ravel().tolist()))
     masks = np.stack([(idx == s).astype(np.float64) for s in slices])[:, None]
     means = [float(coc[idx == s].mean()) for s in slices]
-    return reference_scatter_layers(aif[None] * masks, masks, means, aperture)
+    return reference_scatter_layers(aif[None] * masks, masks, means, aperture, surface_px=surface_px, background=background)

@@ -17,12 +17,28 @@ What it approximates for an all-in-focus image plus a depth map (:func:`render_d
 
 * Depth is sliced into layers of equal signed-CoC width ``coc_step`` (default 0.5 px); each
   slice is blurred with the kernel at its pixels' mean CoC, so a sloped surface is
-  staircased with a CoC error of at most ``coc_step / 2``; pixels within one slice do not
-  occlude each other.
-* What a foreground hides in the all-in-focus image is unknown. Its hole in the layer behind
+  staircased with a CoC error of at most ``coc_step / 2``.
+* Slices of one continuous surface must not occlude each other: a thin slice's blurred
+  coverage is fractional, and "over" of many such slices lets what lies behind show through
+  a blurred foreground (its silhouette stays sharp over the background). With
+  ``occlusion="surface"`` (default) a slice hides only the slices more than ``jump_px``
+  behind it (a depth discontinuity; nearer ones add up side by side), and of those only the
+  light that does not fit beside the surface it belongs to (the far light, coverage ``A``,
+  is scaled to fit into ``1 - a``, ``a`` the coverage of the slices within ``jump_px``, only
+  where ``a + A > 1``; exact when the ray bundles are nested, i.e. both behind or both in
+  front of the focus plane). ``occlusion="over"`` treats every slice as a complete layer.
+* What a foreground hides in the all-in-focus image is unknown. Its hole in the layers behind
   leaves the accumulated coverage below 1 where a blurred foreground edge becomes partly
-  transparent; with ``fill_holes`` (default) the result is divided by the coverage, i.e. the
-  hole is filled with the surrounding visible colours instead of turning dark.
+  transparent. ``fill="background"`` (default) fills that shortfall with the visible
+  background around the occluder (:func:`neuralbokeh.render.holes.hidden_background`), which
+  is what a lens sees through a blurred edge; ``fill="normalize"`` divides by the coverage
+  (the foreground's own colours fill the hole, so it looks opaque); ``"none"`` leaves it dark.
+* ``coc_step`` 0.5, ``jump_px`` 4 and the two defaults above were chosen on Mitsuba renders of a
+  scene with continuous depth (``benchmarks/bench_continuous.py``, 8192 spp truth): against
+  "over" + normalising they gain 5.8 dB (blurred foreground over a sharp wall) and 7.1 dB
+  (the reverse) in linear PSNR; ``coc_step`` 1-2 px loses 11-13 dB on blurred highlights in
+  the reverse case and 0.25 px gains nothing; ``jump_px`` 1-8 are within 2 dB of each other
+  (1-2 px better on the blurred background, 4-8 px on the blurred foreground and in sRGB).
 * Partial occlusion inside the lens (a point seen around the edge of a nearer object from
   part of the aperture) is modelled only through the layer order, as in all layered methods.
 * Cat-eye kernels vary continuously over the image; they are evaluated on a
@@ -60,10 +76,13 @@ from ..apertures import ApertureModel, field_position
 from ..checks import check_finite, check_in_range, check_nonnegative, check_positive, check_shape
 from ..optics import ThinLens
 from .fftconv import fft_convolve2d
+from .holes import hidden_background
 
 log = logging.getLogger(__name__)
 
 _EPS_COVERAGE = 1e-6
+OCCLUSION_MODES = ("surface", "over")
+FILL_MODES = ("background", "normalize", "none")
 
 
 def _node_positions(size: int, grid: int) -> np.ndarray:
@@ -196,14 +215,21 @@ def _composite(
     shape: tuple[int, int],
     like: torch.Tensor,
     field_grid: int | None,
-    fill_holes: bool,
+    fill: str,
     chunk: int,
     preserve_uniform: bool = False,
+    surface_px: float = 0.0,
+    background: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Scatter and composite layers far to near; ``layer_fn(i)`` gives ``(C (3,H,W), A (1,H,W))``.
 
-    Only one layer's blurred maps are alive at a time: memory does not grow with the layers.
+    A layer hides (``"over"``) only the layers more than ``surface_px`` behind it (0: every
+    layer behind it, as for complete layers); the others add up as parts of one surface. ``fill``: ``"normalize"``, ``"background"`` (needs ``background``, ``(3, H, W)``) or
+    ``"none"`` (see the module doc). Only one layer's blurred maps are alive at a time: memory
+    does not grow with the layers.
     """
+    if fill not in FILL_MODES or (fill == "background" and background is None):
+        raise ValueError(f"fill must be one of {FILL_MODES} (background with an image), got {fill!r}")
     if field_grid is not None and field_grid < 2:
         raise ValueError(f"field_grid must be >= 2 (or None for automatic), got {field_grid}")
     if chunk < 1:
@@ -217,8 +243,10 @@ def _composite(
     else:
         grid = field_grid or auto_field_grid(aperture, max_coc, h, w)
     n_u = n_a if grid > 1 else 0  # channels of the uniform-field response
-    out_c = torch.zeros((3, h, w), dtype=like.dtype, device=like.device)
+    out_c = torch.zeros((3, h, w), dtype=like.dtype, device=like.device)  # slices that others hide
     out_a = torch.zeros((n_a, h, w), dtype=like.dtype, device=like.device)
+    window: list[tuple[float, torch.Tensor, torch.Tensor]] = []  # within surface_px of the current slice
+    win_a = torch.zeros_like(out_a)  # their coverage
     n_conv = 0
     for i in sorted(range(len(cocs)), key=lambda j: -cocs[j]):  # far to near
         c = cocs[i]
@@ -232,12 +260,26 @@ def _composite(
             blurred, n = _scatter_layer(src, c, aperture, grid, pad, n_a, n_u, chunk, preserve_uniform)
             n_conv += n
         cc, aa = blurred[:3], blurred[3:].clamp(0.0, 1.0)
-        out_c = cc + (1.0 - aa) * out_c
-        out_a = aa + (1.0 - aa) * out_a
+        while window and (surface_px <= 0 or window[0][0] > c + surface_px):  # more than surface_px behind: now hidden by nearer slices
+            _, wc, wa = window.pop(0)
+            out_c, out_a, win_a = out_c + wc, out_a + wa, win_a - wa
+        window.append((c, cc, aa))
+        win_a = win_a + aa
+        if surface_px > 0:  # hide only the light that does not fit beside this surface's (see module doc)
+            keep = ((1.0 - win_a).clamp_min(0.0) / out_a.clamp_min(_EPS_COVERAGE)).clamp(max=1.0)
+        else:
+            keep = 1.0 - aa
+        out_c = keep * out_c
+        out_a = keep * out_a
+    for _, wc, wa in window:  # the nearest surface: side by side, nothing in front of it
+        out_c, out_a = out_c + wc, out_a + wa
     log.debug("scatter: %d layers, %d convolutions, grid %d, kernel pad %d px", len(cocs), n_conv, grid, pad)
-    if fill_holes:
+    if fill == "normalize":
         cover = out_a.expand(3, h, w)
-        out_c = torch.where(cover > _EPS_COVERAGE, out_c / cover.clamp_min(_EPS_COVERAGE), out_c)
+        return torch.where(cover > _EPS_COVERAGE, out_c / cover.clamp_min(_EPS_COVERAGE), out_c)
+    out_c = out_c / out_a.clamp_min(1.0)  # parts of one surface side by side may overlap a little
+    if fill == "background":
+        out_c = out_c + (1.0 - out_a).clamp_min(0.0) * background
     return out_c
 
 
@@ -289,7 +331,7 @@ def scatter_layers(
         (d["H"], d["W"]),
         colors,
         field_grid,
-        fill_holes,
+        "normalize" if fill_holes else "none",
         chunk,
         preserve_uniform,
     )
@@ -314,9 +356,11 @@ def scatter_defocus(
     *,
     coc_step: float = 0.5,
     field_grid: int | None = None,
-    fill_holes: bool = True,
+    fill: str = "background",
     chunk: int = 8,
     preserve_uniform: bool = False,
+    occlusion: str = "surface",
+    jump_px: float = 4.0,
 ) -> torch.Tensor:
     """Defocus an all-in-focus image given its signed CoC map (layered approximation).
 
@@ -326,9 +370,19 @@ def scatter_defocus(
         aperture: aperture model (default disk).
         coc_step: width (px) of the CoC slices the depth is cut into, > 0.
         field_grid: image-position grid for cat-eye kernels (default automatic).
-        fill_holes: see the module doc.
+        fill: what fills the coverage the slices leave short (where a blurred foreground is
+            partly transparent onto what it hides): ``"background"`` (default: the visible
+            background around the occluder, :func:`neuralbokeh.render.holes.hidden_background`),
+            ``"normalize"`` (divide by the coverage: the foreground's own colours) or ``"none"``.
         chunk: convolutions per FFT batch.
         preserve_uniform: see :func:`scatter_layers`.
+        occlusion: how a slice hides the slices behind it: ``"surface"`` (default: only those
+            more than ``jump_px`` behind it, and of those only the light that does not fit
+            beside its own; slices closer than that add up as parts of one surface) or
+            ``"over"`` (every slice a complete layer: under-counts a blurred continuous
+            surface and lets what it hides show through). See the module doc.
+        jump_px: the least CoC step (px) that counts as a depth discontinuity, > 0: for
+            ``occlusion="surface"`` and for finding occluders (``fill="background"``).
 
     Returns:
         ``(B, 3, H, W)`` defocused linear RGB.
@@ -337,7 +391,10 @@ def scatter_defocus(
     check_shape("coc", coc, "B 1 H W", B=d["B"], H=d["H"], W=d["W"])
     check_nonnegative("aif", aif)
     check_finite("coc", coc, " px")
+    if occlusion not in OCCLUSION_MODES:
+        raise ValueError(f"occlusion must be one of {OCCLUSION_MODES}, got {occlusion!r}")
     outs = []
+    hidden = hidden_background(aif, coc, jump_px) if fill == "background" else None
     for b in range(d["B"]):
         idx, present = slice_by_coc(coc[b, 0], coc_step)
         flat = (idx - present[0]).flatten()
@@ -351,7 +408,8 @@ def scatter_defocus(
 
         outs.append(
             _composite(
-                layer, means, aperture or ApertureModel(), (d["H"], d["W"]), aif, field_grid, fill_holes, chunk, preserve_uniform
+                layer, means, aperture or ApertureModel(), (d["H"], d["W"]), aif, field_grid, fill, chunk,
+                preserve_uniform, jump_px if occlusion == "surface" else 0.0, None if hidden is None else hidden[b],
             )
         )
     return torch.stack(outs)
@@ -373,7 +431,7 @@ def render_defocus(
         lens: the thin lens; the sensor width maps onto the image width ``W``.
         focus_m: focus distance in m (> focal length; inf allowed).
         aperture: aperture model (default disk).
-        **kwargs: passed to :func:`scatter_defocus` (``coc_step``, ``field_grid``, ``fill_holes``,
+        **kwargs: passed to :func:`scatter_defocus` (``coc_step``, ``field_grid``, ``fill``, ``occlusion``,
             ``preserve_uniform``).
 
     Returns:
