@@ -4,8 +4,10 @@ Pure math on numpy (float64): kernels are small, and keeping this module torch-f
 compositing runtime use it too. Renderers move kernels to their input's device and dtype.
 
 Conventions:
-    * A shape is a transmission function on *normalised pupil coordinates* ``(u, v)``: the
-      shape fits in the unit circle, ``u`` points right and ``v`` points up.
+    * A shape is a transmission function on *normalised pupil coordinates* ``(u, v)`` in the
+      square ``[-1, 1]^2`` (``u`` right, ``v`` up); the shape's own transmission is its
+      support (no implicit disk: a circular pupil is ``Disk``). Kernels and every ray-traced
+      renderer (:func:`pupil_grid`) sample that same square; the CoC diameter is its side.
     * A kernel is the shape's image for a CoC diameter ``d`` px: an odd ``(k, k)`` array,
       ``k = 2 * ceil(d/2 - 1/2) + 1``, its centre pixel on the point's position, row 0 at the
       top. It is anti-aliased by box-filtering the shape over each pixel (supersampling) and
@@ -33,7 +35,7 @@ from .checks import check_in_range, check_nonnegative, check_positive
 
 
 class Aperture:
-    """Base class of aperture shapes: a transmission in [0, 1] on the unit pupil disk."""
+    """Base class of aperture shapes: a transmission in [0, 1] on the pupil square [-1, 1]^2 (its support is the shape)."""
 
     name: ClassVar[str] = ""
 
@@ -183,8 +185,9 @@ class MaskAperture(Aperture):
     """An arbitrary aperture from a transmission image covering the square [-1, 1]^2.
 
     Args:
-        mask: ``(H, W)`` array of transmissions in [0, 1]; row 0 is the top (v = +1). Only
-            its inscribed disk should be non-zero for the kernel to stay within its diameter.
+        mask: ``(H, W)`` array of transmissions in [0, 1]; row 0 is the top (v = +1). The
+            whole square is the pupil (kernels span it at the CoC diameter as their side):
+            an all-ones mask is a square aperture.
 
     It is stored in JSON as 8-bit data (exact for binary masks).
     """
@@ -277,6 +280,36 @@ def parse_aperture(spec: str, load_mask: Callable[[str], np.ndarray] | None = No
     except ValueError as e:
         raise ValueError(f"bad aperture spec {spec!r}: {e}") from None
     raise ValueError(f"bad aperture spec {spec!r}; expected one of: {forms}")
+
+
+def pupil_grid(shape: Aperture, n: int, rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Sample points of the pupil where ``shape`` transmits: the one pupil definition of every
+    renderer that traces rays (kernels sample the same square).
+
+    The pupil is the square ``[-1, 1]^2`` of normalised coordinates and the shape's own
+    transmission is its support: there is no implicit disk (a disk-shaped aperture is a
+    ``Disk``), so e.g. ``MaskAperture(np.ones(...))`` is a square in every renderer.
+
+    Args:
+        shape: the aperture shape.
+        n: points per side of the regular ``n x n`` grid of cell centres, >= 1.
+        rng: if given, each point is jittered uniformly inside its cell (stratified sampling).
+
+    Returns:
+        ``(M, 2)`` points ``(u right, v up)`` and their transmissions ``(M,)``, all > 0.
+    """
+    if int(n) != n or n < 1:
+        raise ValueError(f"pupil grid size must be an integer >= 1, got {n!r}")
+    cell = np.arange(n, dtype=np.float64)
+    if rng is None:
+        u, v = np.meshgrid(cell + 0.5, cell + 0.5)
+    else:
+        u = cell[None, :] + rng.uniform(size=(n, n))
+        v = cell[:, None] + rng.uniform(size=(n, n))
+    u, v = u / n * 2.0 - 1.0, v / n * 2.0 - 1.0
+    t = np.broadcast_to(shape.transmission(u, v), u.shape)
+    keep = t > 0
+    return np.stack([u[keep], v[keep]], axis=1), t[keep]
 
 
 def kernel_radius_px(diameter_px: float) -> int:

@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 import torch
 
-from neuralbokeh.apertures import ApertureModel, Disk, Polygon
+from neuralbokeh.apertures import ApertureModel, Disk, MaskAperture, Polygon
 from neuralbokeh.render import scatter_defocus
-from neuralbokeh.render.baselines import gather_defocus
+from neuralbokeh.render.baselines import gather_defocus, pseudo_ray_trace
 from neuralbokeh.render.buckets import bucket_gather
 from neuralbokeh.render.lens_trace import _refract, hidden_layer, lens_ray_trace, singlet_zone_profile
 from neuralbokeh.render.pyramid import gaussian_spread_reference, pyramid_spread, quadtree_sites, tensor_filter
@@ -204,3 +204,34 @@ def test_ray_tracers_keep_the_aperture_upright(method):
     upright = float(np.corrcoef(out[win].flatten().numpy(), ref[win].flatten().numpy())[0, 1])
     flipped = float(np.corrcoef(out[win].flatten().numpy(), ref[win].flip(0).flatten().numpy())[0, 1])
     assert upright > 0.8 and upright > flipped + 0.2, (upright, flipped)
+
+
+# --- one pupil for every renderer ---
+
+SQUARE = ApertureModel(MaskAperture(np.ones((8, 8))))
+
+
+def _support_iou(img: np.ndarray, coc_px: float, centre: tuple[int, int]) -> float:
+    """IoU of the lit pixels (above a quarter of the brightest) with the square of side
+    ``coc_px`` centred on the point (pixel centres inside it)."""
+    yy, xx = np.mgrid[: img.shape[0], : img.shape[1]]
+    square = (np.abs(yy - centre[0]) <= coc_px / 2) & (np.abs(xx - centre[1]) <= coc_px / 2)
+    lit = img > 0.25 * img.max()
+    return float((lit & square).sum() / (lit | square).sum())
+
+
+@pytest.mark.parametrize("method", ["scatter", "gather", "raytrace", "buckets", "lenstrace"])
+def test_a_square_aperture_is_a_square_in_every_renderer(method):
+    render = {
+        "scatter": lambda x, c, ap: scatter_defocus(x, c, ap),
+        "gather": lambda x, c, ap: gather_defocus(x, c, ap),
+        "raytrace": lambda x, c, ap: pseudo_ray_trace(x, c, ap, grid=32),
+        "buckets": lambda x, c, ap: bucket_gather(x, c, ap),
+        "lenstrace": lambda x, c, ap: lens_ray_trace(x, c, ap, grid=32),
+    }[method]
+    coc = 17.0
+    x, c = _point(coc)
+    centre = (SIZE // 2, SIZE // 2 - 4)
+    square = _support_iou(render(x, c, SQUARE)[0, 0].numpy(), coc, centre)
+    disk = _support_iou(render(x, c, ApertureModel(Disk()))[0, 0].numpy(), coc, centre)
+    assert square >= 0.9 > disk, (square, disk)  # the disk is not mistaken for a square either

@@ -15,7 +15,7 @@ from data_tools.mitsuba.render import (  # noqa: E402
     planar_depth_from_aov, render_aif, render_defocus, render_depth, tangent_grid)
 from data_tools.mitsuba.scenes import Camera, fov_for_lens  # noqa: E402
 from data_tools.mitsuba.variant import activate, llvm_candidates, probe  # noqa: E402
-from neuralbokeh.apertures import ApertureModel, Disk, Polygon  # noqa: E402
+from neuralbokeh.apertures import ApertureModel, Disk, MaskAperture, Polygon  # noqa: E402
 from neuralbokeh.data import FocalStackDataset  # noqa: E402
 from neuralbokeh.metrics import image_metrics  # noqa: E402
 from neuralbokeh.optics import ThinLens  # noqa: E402
@@ -204,3 +204,19 @@ def test_cli_renders_a_users_xml_scene_in_its_units(mi, tmp_path):
     assert meta["lens"]["sensor_width_mm"] == pytest.approx(2 * 50.0 * math.tan(math.radians(20.0)), rel=1e-5)
     with pytest.raises(SystemExit, match="NAME=VALUE"):
         main(["--out", str(out), "--scene-xml", str(xml), "--xml-param", "res", "--variant", "scalar_rgb"])
+
+
+def test_a_square_aperture_renders_a_square(mi):
+    # The one pupil definition (neuralbokeh.apertures.pupil_grid): an all-ones mask is the
+    # whole pupil square, as in the kernels; Mitsuba's lens points used to be cut to a disk.
+    cam = _camera(mi, 40, 40)
+    lens = ThinLens(50.0, 1.2, 36.0)
+    depth, focus = 2.0, 0.3
+    img = render_defocus(mi, _point_scene(mi, cam, depth, 0.0, 0.0, 0.5), cam, lens,
+                         ApertureModel(MaskAperture(np.ones((8, 8)))), focus, 1024, seed=4).image[..., 1]
+    c = lens.coc_px(depth, focus, 40)
+    yy, xx = np.mgrid[:40, :40]
+    square = (np.abs(yy - 19.5) <= c / 2) & (np.abs(xx - 19.5) <= c / 2)
+    lit = img > 0.25 * np.percentile(img[square], 90)
+    iou = float((lit & square).sum() / (lit | square).sum())
+    assert iou >= 0.9, iou

@@ -23,7 +23,7 @@ Defocus, two ways (both put the focus plane at planar depth ``d_f``):
   circle, weighted by the inverse of the aperture fraction the circle leaves (kernels sum to
   one: vignetting reshapes the bokeh, it does not darken the corners).
 
-A lens point ``(u, v)`` of the unit pupil (u right, v up as seen in the image) sits at camera
+A lens point ``(u, v)`` of the pupil square ``[-1, 1]^2`` (u right, v up as seen in the image) sits at camera
 coordinates ``(-u R, v R, 0)`` (Mitsuba camera space: image right is -x), so that a point
 behind the focus plane images as the upright aperture shape and one in front as its point
 reflection, the convention of ``neuralbokeh.apertures``.
@@ -45,7 +45,7 @@ from typing import Any
 
 import numpy as np
 
-from neuralbokeh.apertures import ApertureModel, Disk, field_position
+from neuralbokeh.apertures import ApertureModel, Disk, field_position, pupil_grid
 from neuralbokeh.checks import check_at_least, check_positive
 from neuralbokeh.optics import ThinLens
 
@@ -111,13 +111,10 @@ def lens_radius_m(lens: ThinLens, focus_m: float, camera: Camera) -> float:
 
 
 def lens_points(aperture: ApertureModel, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """Points of the unit pupil on a jittered ``n x n`` grid where the shape transmits:
-    ``(M, 2)`` as (u right, v up) and their transmissions ``(M,)``."""
-    u = (np.arange(n)[None, :] + rng.uniform(size=(n, n))) / n * 2.0 - 1.0
-    v = (np.arange(n)[:, None] + rng.uniform(size=(n, n))) / n * 2.0 - 1.0
-    t = aperture.shape.transmission(u, v) * (u**2 + v**2 <= 1.0)
-    keep = t > 0
-    return np.stack([u[keep], v[keep]], axis=1), t[keep]
+    """Points of the pupil on a jittered ``n x n`` grid where the shape transmits
+    (:func:`neuralbokeh.apertures.pupil_grid`): ``(M, 2)`` as (u right, v up) and their
+    transmissions ``(M,)``."""
+    return pupil_grid(aperture.shape, n, rng)
 
 
 def clip_fraction_table(aperture: ApertureModel, grid: int = 33, samples: int = 160) -> np.ndarray:
@@ -125,7 +122,7 @@ def clip_fraction_table(aperture: ApertureModel, grid: int = 33, samples: int = 
     ``grid x grid`` table of field positions ``(fy, fx)`` in ``[-1, 1]^2``."""
     g = (np.arange(samples) + 0.5) / samples * 2.0 - 1.0
     u, v = np.meshgrid(g, g)
-    t = aperture.shape.transmission(u, v) * (u**2 + v**2 <= 1.0)
+    t = aperture.shape.transmission(u, v)
     f = np.linspace(-1.0, 1.0, grid)
     table = np.empty((grid, grid))
     for i, fy in enumerate(f):

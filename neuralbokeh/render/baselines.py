@@ -25,7 +25,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..apertures import ApertureModel, Gaussian
+from ..apertures import ApertureModel, Gaussian, pupil_grid
 from ..checks import check_finite, check_nonnegative, check_positive, check_shape
 from .fftconv import fft_convolve2d
 from .scatter import scatter_defocus
@@ -85,13 +85,11 @@ def gather_defocus(aif: torch.Tensor, coc: torch.Tensor, aperture: ApertureModel
     return out
 
 
-def _aperture_samples(aperture: ApertureModel, n: int) -> np.ndarray:
-    """The points of an ``n x n`` grid inside the unit pupil of the aperture shape, ``(N, 2)`` as
-    (x right, y down)."""
-    grid = (np.arange(n) + 0.5) / n * 2.0 - 1.0
-    u, v = np.meshgrid(grid, grid)
-    keep = (u**2 + v**2 <= 1.0) & (aperture.shape.transmission(u, v) > 0.5)
-    pts = np.stack([u[keep], -v[keep]], axis=1)  # the shape's v is up, image rows go down
+def aperture_rays(aperture: ApertureModel, n: int) -> np.ndarray:
+    """Equal-weight rays through an ``n x n`` grid of the pupil (:func:`neuralbokeh.apertures.pupil_grid`)
+    where the shape transmits more than half, ``(N, 2)`` as (x right, y down)."""
+    pts, t = pupil_grid(aperture.shape, n)
+    pts = pts[t > 0.5] * np.array([1.0, -1.0])  # the shape's v is up, image rows go down
     if len(pts) == 0:
         raise ValueError(f"the aperture {aperture.shape} has no sample point on a {n}x{n} grid")
     return pts
@@ -101,8 +99,8 @@ def pseudo_ray_trace(aif: torch.Tensor, coc: torch.Tensor, aperture: ApertureMod
                      coc_step: float = 0.5, blending: str = "radiance", sigma: float = 80.0) -> torch.Tensor:
     """Depth-aware pseudo ray tracing (Yang et al., ``../shared/papers/virtual-dslr-yang.txt``).
 
-    For every output pixel ``p`` and every sample ``v`` of the aperture (unit pupil, a regular
-    grid inside the shape), the ray is followed through the scene without building a light
+    For every output pixel ``p`` and every sample ``v`` of the aperture (a regular grid of the pupil
+    square where the shape transmits, :func:`aperture_rays`), the ray is followed through the scene without building a light
     field: a scene point whose signed CoC is ``c`` is seen by that ray at ``q = p - (c / 2) v``
     (the CoC form of the paper's eq. 4, with our sign convention: in front of the focus plane
     the image is point-reflected), so the candidates ``c`` are tried from the nearest to the
@@ -132,7 +130,7 @@ def pseudo_ray_trace(aif: torch.Tensor, coc: torch.Tensor, aperture: ApertureMod
     if blending not in ("radiance", "yang"):
         raise ValueError(f"blending must be 'radiance' or 'yang', got {blending!r}")
     n = grid if grid is not None else max(2, int(np.ceil(float(coc.abs().max()))))
-    pts = torch.from_numpy(_aperture_samples(aperture or ApertureModel(), n))
+    pts = torch.from_numpy(aperture_rays(aperture or ApertureModel(), n))
     h, w = d["H"], d["W"]
     ys, xs = torch.meshgrid(torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij")
     outs = []

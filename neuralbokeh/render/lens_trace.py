@@ -38,7 +38,7 @@ import torch.nn.functional as F
 
 from ..apertures import ApertureModel
 from ..checks import check_at_least, check_finite, check_positive
-from .baselines import _aperture_samples, _check_inputs
+from .baselines import _check_inputs, aperture_rays
 
 _REFINE = 3  # narrowing passes of the min/max search
 
@@ -192,8 +192,8 @@ def lens_ray_trace(aif: torch.Tensor, coc: torch.Tensor, aperture: ApertureModel
     if layers not in (1, 2):
         raise ValueError(f"layers must be 1 or 2, got {layers}")
     sa = float(spherical_aberration_px)
-    pts = _aperture_samples(aperture or ApertureModel(), grid)
-    rho = np.minimum(np.hypot(pts[:, 0], pts[:, 1]), 1.0)
+    pts = aperture_rays(aperture or ApertureModel(), grid)
+    rho = np.minimum(np.hypot(pts[:, 0], pts[:, 1]), 1.0)  # the zone profile ends at the rim: corners of a square pupil take its value there
     shift = sa * singlet_zone_profile(rho, index=index, bending=bending) if sa != 0 else np.zeros(len(pts))
     h, w = d["H"], d["W"]
     outs = []
