@@ -1,6 +1,9 @@
 """The paper-sourced classical baselines: each on a point light and on a step edge at a depth
 discontinuity, against the reference scatter or the slow per-pixel Gaussian spread."""
 
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 import torch
@@ -235,3 +238,30 @@ def test_a_square_aperture_is_a_square_in_every_renderer(method):
     square = _support_iou(render(x, c, SQUARE)[0, 0].numpy(), coc, centre)
     disk = _support_iou(render(x, c, ApertureModel(Disk()))[0, 0].numpy(), coc, centre)
     assert square >= 0.9 > disk, (square, disk)  # the disk is not mistaken for a square either
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="address-space limits and ru_maxrss in KiB are Linux's")
+def test_tensor_filter_memory_is_bounded_by_the_chunk_not_the_blur():
+    # a noisy CoC ramp out to +-44 px at 512^2: hundreds of thousands of single-pixel sites with wide
+    # windows (one window for all of them needed 3.4 GB allocations and 23 GB in all)
+    script = (
+        "import resource, torch\n"
+        "resource.setrlimit(resource.RLIMIT_AS, (4 << 30, 4 << 30))\n"
+        "from neuralbokeh.render.pyramid import tensor_filter\n"
+        "g = torch.Generator().manual_seed(0)\n"
+        "ramp = torch.linspace(-44, 44, 512, dtype=torch.float64)[:, None].expand(512, 512)\n"
+        "coc = (ramp + torch.rand(512, 512, generator=g, dtype=torch.float64) * 6 - 3)[None, None].contiguous()\n"
+        "out = tensor_filter(torch.rand(1, 3, 512, 512, generator=g, dtype=torch.float64), coc)\n"
+        "assert bool(torch.isfinite(out).all())\n"
+        "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)\n"
+    )
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert int(done.stdout.split()[-1]) < 4 << 20  # peak RSS in KiB, under the 4 GiB address-space cap anyway
+
+
+def test_tensor_filter_chunks_do_not_change_the_result():
+    g = torch.Generator().manual_seed(2)
+    x = torch.rand(1, 3, 40, 44, generator=g, dtype=torch.float64)
+    c = (torch.rand(1, 1, 40, 44, generator=g, dtype=torch.float64) - 0.5) * 30
+    torch.testing.assert_close(tensor_filter(x, c, chunk_taps=500), tensor_filter(x, c, chunk_taps=10**9), atol=1e-12, rtol=0)

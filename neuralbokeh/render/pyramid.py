@@ -169,7 +169,42 @@ def quadtree_sites(sigma: torch.Tensor, spacing: float = 1.0, tolerance: float =
     return sites
 
 
-def tensor_filter(aif: torch.Tensor, coc: torch.Tensor, spacing: float = 1.0, tolerance: float = 0.25) -> torch.Tensor:
+def _window_radius(var: torch.Tensor) -> torch.Tensor:
+    """Half-width (px) of the tap window of sites with Gaussian variance ``var``: 3 sigma + 1."""
+    return (3.0 * var.sqrt()).ceil().long() + 1
+
+
+def _by_window(leaves: torch.Tensor, chunk_taps: int):
+    """Leaves ``(N, 4)`` in groups of one window radius each, at most ``chunk_taps`` taps a group."""
+    if len(leaves) == 0:
+        return
+    radius = _window_radius(leaves[:, 2] ** 2 / 2.0)
+    for r in torch.unique(radius).tolist():
+        group = leaves[radius == r]
+        per = max(1, chunk_taps // (2 * r + 2) ** 2)
+        for s in range(0, len(group), per):
+            yield group[s : s + per]
+
+
+def _gather_spread(flat: torch.Tensor, leaves: torch.Tensor, h: int, w: int, num: torch.Tensor, den: torch.Tensor) -> None:
+    """Gather at ``leaves`` (one window radius) from ``flat`` ``(3, H*W)`` and spread into ``num``/``den``."""
+    cy, cx, var = leaves[:, 0], leaves[:, 1], (leaves[:, 2] ** 2) / 2.0
+    r = int(_window_radius(var).max())
+    by, bx = cy.floor(), cx.floor()
+    off = torch.arange(-r, r + 2, dtype=torch.float64)
+    oy, ox = torch.meshgrid(off, off, indexing="ij")
+    py, px = by[None] + oy.reshape(-1, 1), bx[None] + ox.reshape(-1, 1)  # (T, N) pixels near each site
+    valid = (py >= 0) & (py < h) & (px >= 0) & (px < w)
+    g = _gaussian_taps((py - cy) ** 2 + (px - cx) ** 2, var) * valid
+    idx = (py.clamp(0, h - 1) * w + px.clamp(0, w - 1)).long()
+    gathered = (flat[:, idx] * g).sum(dim=1) / g.sum(dim=0)  # (3, N): the gather
+    spread = g * (leaves[:, 3] / g.sum(dim=0))  # a site spreads the weight of the pixels it stands for
+    num.index_add_(1, idx.reshape(-1), (gathered[:, None, :] * spread[None]).reshape(3, -1))  # the spread
+    den.index_add_(0, idx.reshape(-1), spread.reshape(-1))
+
+
+def tensor_filter(aif: torch.Tensor, coc: torch.Tensor, spacing: float = 1.0, tolerance: float = 0.25,
+                  chunk_taps: int = 2_000_000) -> torch.Tensor:
     """The tensor method (Kosloff and Barsky, section 6): a gather then a spread at quadtree sites.
 
     The blur operator is compressed to overlapping separable pieces, one per site
@@ -185,11 +220,15 @@ def tensor_filter(aif: torch.Tensor, coc: torch.Tensor, spacing: float = 1.0, to
         coc: ``(B, 1, H, W)`` signed CoC diameter in px, finite (its sign is ignored).
         spacing: largest site spacing per px of sigma, > 0 (larger: faster, coarser).
         tolerance: allowed relative spread of sigma within a leaf, > 0.
+        chunk_taps: (site, tap) pairs evaluated at once, >= 1. Sites are grouped by their own
+            window size (3 sigma), so memory is O(pixels + chunk_taps) (about 100 bytes per
+            tap) whatever the blur.
 
     Returns:
         ``(B, 3, H, W)`` linear RGB (float64).
     """
     d = _check_inputs(aif, coc, 1.0)
+    check_at_least("chunk_taps", chunk_taps, 1)
     x, sigma = aif.double(), _pixel_sigma(coc)
     h, w = d["H"], d["W"]
     outs = []
@@ -197,21 +236,8 @@ def tensor_filter(aif: torch.Tensor, coc: torch.Tensor, spacing: float = 1.0, to
         num = torch.zeros(3, h * w, dtype=torch.float64)
         den = torch.zeros(h * w, dtype=torch.float64)
         flat = x[b].reshape(3, -1)
-        for leaves in quadtree_sites(sigma[b, 0], spacing, tolerance):
-            if len(leaves) == 0:
-                continue
-            cy, cx, var = leaves[:, 0], leaves[:, 1], (leaves[:, 2] ** 2) / 2.0
-            r = max(0, math.ceil(3.0 * math.sqrt(float(var.max()))) + 1)
-            by, bx = cy.floor(), cx.floor()
-            off = torch.arange(-r, r + 2, dtype=torch.float64)
-            oy, ox = torch.meshgrid(off, off, indexing="ij")
-            py, px = by[None] + oy.reshape(-1, 1), bx[None] + ox.reshape(-1, 1)  # (T, N) pixels near each site
-            valid = (py >= 0) & (py < h) & (px >= 0) & (px < w)
-            g = _gaussian_taps((py - cy) ** 2 + (px - cx) ** 2, var) * valid
-            idx = (py.clamp(0, h - 1) * w + px.clamp(0, w - 1)).long()
-            gathered = (flat[:, idx] * g).sum(dim=1) / g.sum(dim=0)  # (3, N): the gather
-            spread = g * (leaves[:, 3] / g.sum(dim=0))  # a site spreads the weight of the pixels it stands for
-            num.index_add_(1, idx.reshape(-1), (gathered[:, None, :] * spread[None]).reshape(3, -1))  # the spread
-            den.index_add_(0, idx.reshape(-1), spread.reshape(-1))
+        for level in quadtree_sites(sigma[b, 0], spacing, tolerance):
+            for leaves in _by_window(level, chunk_taps):
+                _gather_spread(flat, leaves, h, w, num, den)
         outs.append((num / den).reshape(3, h, w))
     return torch.stack(outs)
