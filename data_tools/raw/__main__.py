@@ -1,16 +1,20 @@
-"""RAW focal stacks -> training triples: ``python -m data_tools.raw STACK_DIR [STACK_DIR ...] --out DIR``.
+"""Focal stacks -> training triples: ``python -m data_tools.raw STACK_DIR [STACK_DIR ...] --out DIR``.
 
-A stack is a folder of RAW files (anything LibRaw reads) of one static scene at different focus
-distances. Per stack: linear decode with one white balance (``--white-balance``, from the
-reference slice) and one exposure normalisation (the reference slice's mean luminance -> 0.18),
+A stack is a folder of RAW files (anything LibRaw reads) or of developed 8/16-bit TIFF, PNG or
+JPEG files (one kind per stack) of one static scene at different focus distances. Per stack:
+linear decode (RAW: with one white balance, ``--white-balance``, from the reference slice;
+developed files: the transfer function undone, ``--transfer``, sRGB by default, and each
+slice's exposure equalised to the reference slice's), one exposure normalisation (the
+reference slice's mean luminance -> 0.18),
 alignment of every slice to the reference (the middle slice) with a similarity transform,
 crop to the common area, optional area-averaged downscale (``--size``), all-in-focus fusion and
 depth from focus (or ``--depth FILE``), a CoC map per slice, all written as one scene of the
 dataset format (``scene.json`` records the metadata, white balance, exposure factor, alignment
 per slice with its residual, and the crop).
 
-Focus distances: ``--focus-distances 0.5,0.7,...`` (in file-name order, for every stack),
-``--focus-csv`` (``file,focus_m`` rows) or the files' EXIF SubjectDistance. Lens: focal length
+Focus distances: ``--focus-distances 0.5,0.7,...`` (m) or ``--focus-diopters 2,1.4,...`` (1/m,
+0 = infinity; both in file-name order, for every stack), ``--focus-csv`` (``file,focus_m`` rows)
+or the files' EXIF SubjectDistance. Lens: focal length
 and f-number from EXIF unless given; the sensor width (of the long side, mm) must be given
 (cameras do not record it). A file that cannot be used is named with the reason and dropped;
 the rest of its stack (if >= 2 slices remain) and all other stacks are still written, and the
@@ -46,6 +50,7 @@ from .decode import (
     read_metadata,
     white_balance,
 )
+from .developed import DEVELOPED_EXTENSIONS, decode_developed, exposure_gains, parse_transfer
 from .fuse import fuse_stack
 
 log = logging.getLogger("data_tools.raw")
@@ -72,18 +77,34 @@ def _focus_from_csv(path: Path) -> dict[str, float]:
     return table
 
 
-def stack_files(folder: Path) -> list[Path]:
-    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in RAW_EXTENSIONS and not p.name.startswith("."))
+def stack_files(folder: Path) -> tuple[list[Path], bool]:
+    """The stack's image files in name order and whether they are developed (not RAW)."""
+    visible = [p for p in sorted(folder.iterdir()) if not p.name.startswith(".")]
+    raw = [p for p in visible if p.suffix.lower() in RAW_EXTENSIONS]
+    developed = [p for p in visible if p.suffix.lower() in DEVELOPED_EXTENSIONS]
+    if raw and developed:
+        raise ValueError(f"{folder}: mixes RAW ({raw[0].name}, ...) and developed files ({developed[0].name}, ...); "
+                         "one kind per stack")
+    files = raw or developed
     if len(files) < 2:
-        raise ValueError(f"{folder}: a focal stack needs >= 2 RAW files, found {len(files)}")
-    return files
+        raise ValueError(f"{folder}: a focal stack needs >= 2 RAW, TIFF, PNG or JPEG files, found {len(files)}")
+    return files, not raw
 
 
 def focus_distances(files: list[Path], metas: list[dict], args: argparse.Namespace) -> list[float]:
-    if args.focus_distances:
-        values = [float(v) for v in args.focus_distances.split(",")]
+    if args.focus_distances or args.focus_diopters:
+        flag = "--focus-distances" if args.focus_distances else "--focus-diopters"
+        try:
+            values = [float(v) for v in (args.focus_distances or args.focus_diopters).split(",")]
+        except ValueError:
+            raise ValueError(f"{flag} must be comma-separated numbers, got {args.focus_distances or args.focus_diopters!r}") from None
         if len(values) != len(files):
-            raise ValueError(f"--focus-distances has {len(values)} values for {len(files)} files in {files[0].parent}")
+            raise ValueError(f"{flag} has {len(values)} values for {len(files)} files in {files[0].parent}")
+        if args.focus_diopters:
+            bad = [v for v in values if not v >= 0]
+            if bad:
+                raise ValueError(f"--focus-diopters must be >= 0 (1/m; 0 = infinity), got {bad[0]}")
+            values = [float("inf") if v == 0 else 1.0 / v for v in values]
         return values
     if args.focus_csv:
         table = _focus_from_csv(args.focus_csv)
@@ -119,7 +140,7 @@ def process_stack(stack: Path, out: Path, args: argparse.Namespace, failures: li
     folder = out / stack.name
     if folder.exists():
         return None
-    files = stack_files(stack)
+    files, developed = stack_files(stack)
     metas = [read_metadata(f) for f in files]
     focus = focus_distances(files, metas, args)
     bad = [(f.name, d) for f, d in zip(files, focus) if not d > 0]
@@ -130,11 +151,11 @@ def process_stack(stack: Path, out: Path, args: argparse.Namespace, failures: li
     lens = lens_for(metas, args, stack)
     settings = DecodeSettings(args.demosaic, args.half_size)
     ref = len(files) // 2
-    wb = white_balance(files[ref], args.white_balance)
+    wb = None if developed else white_balance(files[ref], args.white_balance)
     images, kept = [], []
     for f, fm in zip(files, focus):
         try:
-            images.append(decode(f, wb, settings))
+            images.append(decode_developed(f, args.transfer) if developed else decode(f, wb, settings))
             kept.append((f, fm))
         except RawDecodeError as e:
             failures.append(str(e))
@@ -146,6 +167,10 @@ def process_stack(stack: Path, out: Path, args: argparse.Namespace, failures: li
         raise ValueError(f"{stack}: slices have different sizes {sorted(shapes)}")
     decoded_h, decoded_w = images[0].shape[:2]
     ref = len(images) // 2  # the middle of the usable slices
+    gains = exposure_gains(images, ref) if developed else [1.0] * len(images)
+    if developed:
+        images = [im * np.float32(g) for im, g in zip(images, gains)]
+        log.info("%s: exposure gains against slice %d: %s", stack, ref, ", ".join(f"{g:.3f}" for g in gains))
     y = images[ref].mean()
     if y <= 0:
         raise ValueError(f"{stack}: the reference slice {kept[ref][0].name} is black")
@@ -179,8 +204,10 @@ def process_stack(stack: Path, out: Path, args: argparse.Namespace, failures: li
         "name": "data_tools.raw", "version": __version__, "stack": str(stack),
         "files": [f.name for f, _ in kept], "failed": [s for s in failures if str(stack) in s],
         "metadata": [m for m, f in zip(metas, files) if f in {k for k, _ in kept}],
-        "white_balance": list(wb), "exposure_factor": exposure, "demosaic": settings.demosaic,
-        "half_size": settings.half_size, "reference_slice": ref,
+        "source": "developed" if developed else "raw",
+        "white_balance": None if wb is None else list(wb), "exposure_factor": exposure,
+        "transfer": args.transfer if developed else None, "exposure_gains": gains,
+        "demosaic": None if developed else settings.demosaic, "half_size": settings.half_size, "reference_slice": ref,
         "alignment": [a.to_dict() for a in info], "crop": {"rows": [crop[0].start, crop[0].stop],
                                                            "cols": [crop[1].start, crop[1].stop]},
         "output_size": list(size), "depth_source": str(args.depth) if args.depth else "depth from focus",
@@ -196,10 +223,12 @@ def process_stack(stack: Path, out: Path, args: argparse.Namespace, failures: li
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m data_tools.raw", description=__doc__,
                                 formatter_class=HelpFormatter)
-    p.add_argument("stacks", nargs="+", type=Path, help="folders of RAW files, one static scene each")
+    p.add_argument("stacks", nargs="+", type=Path, help="folders of RAW or developed (TIFF/PNG/JPEG) files, one static scene each")
     p.add_argument("--out", type=Path, required=True, help="dataset folder to write scenes into")
     p.add_argument("--focus-distances", help="comma-separated focus distances in m, in file-name order")
+    p.add_argument("--focus-diopters", help="comma-separated focus positions in 1/m (0 = infinity), in file-name order")
     p.add_argument("--focus-csv", type=Path, help="CSV of file,focus_m")
+    p.add_argument("--transfer", default="srgb", help="developed files: srgb | linear | gamma:G (the tone curve to undo)")
     p.add_argument("--focal-length", type=float, help="mm (default: EXIF)")
     p.add_argument("--f-number", type=float, help="default: EXIF")
     p.add_argument("--sensor-width", type=float, help="mm, the sensor's long side (required)")
@@ -223,6 +252,12 @@ def main(argv: list[str] | None = None) -> int:
             args.white_balance = tuple(float(v) for v in args.white_balance.split(","))
         except ValueError:
             raise SystemExit(f"error: --white-balance R,G,B must be numbers, got {args.white_balance!r}") from None
+    if args.focus_distances and args.focus_diopters:
+        raise SystemExit("error: give --focus-distances or --focus-diopters, not both")
+    try:
+        parse_transfer(args.transfer)
+    except ValueError as e:
+        raise SystemExit(f"error: --transfer: {e}") from None
     if args.depth and len(args.stacks) != 1:
         raise SystemExit("error: --depth applies to one stack; give one STACK_DIR")
     missing = [str(s) for s in args.stacks if not Path(s).is_dir()]

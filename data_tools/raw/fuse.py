@@ -16,14 +16,23 @@
    a joint bilateral filter holds pixels x window^2 values) guided by the log of the
    sharpest slice: ``D <- GF(c D) / GF(c)`` over a few passes of growing radius, then
    ``c D + (1 - c) D_reg``; low-texture regions take the depth of their surroundings with the
-   same colour instead of noise.
-4. Fusion: every pixel takes the two slices focused nearest to its regularised diopter,
-   interpolated linearly.
+   same colour instead of noise. The fill runs on a grid 4x coarser in float32 (16x fewer
+   pixels, a quarter of the radius): it only decides where confidence is low, and there a
+   4 px blur of the fill is below what the depth from focus resolves. It was 97-99 % of the
+   fusion's time at full resolution in float64 (``benchmarks/bench_fusion.py``).
+4. Fusion: every pixel takes its sharpest slice (the argmax of the windowed focus measure).
+   Measured on stacks rendered from known scenes (``tests/test_fuse.py``,
+   ``benchmarks/bench_fusion.py``), every blend tried lost to it: the two slices bracketing
+   the *regularised* depth, interpolated (the earlier choice), by 1.2 dB, since between two
+   slices neither is sharp and the blend is blurrier than the better one; soft weights
+   ``f^g / sum f^g`` by 0.01-1 dB for g = 8-64. With a known depth (``known_diopters``) the
+   bracketing blend is used.
 
 Slices focused at the same distance, or within ``merge_diopters`` of each other (a stack shot
 at two apertures), are one focus position: of each such group only the slice with the highest
-mean focus measure is kept (logged), so no two slices bracket a pixel with a zero gap. Using the regularised depth rather than the raw per-pixel argmax is
-   what avoids halos: the selection changes at colour edges, not half a window away from them.
+mean focus measure is kept (logged), for the depth and for the fusion alike. This also keeps the
+fusion from mixing slices of different depths of field (on the two-aperture stack of the
+benchmark: 31.0 dB after merging against 27.7 dB for the argmax over all ten slices).
 """
 
 from __future__ import annotations
@@ -33,11 +42,12 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from kornia.filters import gaussian_blur2d, guided_blur, laplacian
 
 log = logging.getLogger(__name__)
 
-SHARPEST_GAIN = 16.0  # fusion weights ~ focus measure ** 16: the sharpest slice, blended where two tie
+REGULARISE_SCALE = 4  # the depth regularisation runs on a grid this many times coarser
 
 
 @dataclass
@@ -90,17 +100,28 @@ def _peak_diopters(fm: torch.Tensor, diopters: np.ndarray) -> tuple[torch.Tensor
     return vertex, confidence.clamp(0.0, 1.0)
 
 
-def _regularise(depth: torch.Tensor, confidence: torch.Tensor, guide: torch.Tensor, passes: int = 4) -> torch.Tensor:
+def _regularise(depth: torch.Tensor, confidence: torch.Tensor, guide: torch.Tensor, passes: int = 4,
+               scale: int = REGULARISE_SCALE) -> torch.Tensor:
     """Confidence-weighted, edge-aware fill of ``depth`` ``(H, W)`` guided by ``guide``
-    ``(1, 1, H, W)`` in [0, 1]; radii 4, 8, 16, 32 px; memory O(pixels)."""
+    ``(1, 1, H, W)`` in [0, 1]; radii 4, 8, 16, 32 px, on a grid ``scale`` times coarser (area
+    averages in, bilinear out; float32): memory and time O(pixels / scale^2 x radius)."""
     eps = 0.1**2  # guide differences well below 0.1 (a tenth of the log range) count as one surface
-    num, den = (confidence * depth)[None, None], confidence[None, None]
+    h, w = depth.shape
+    small = (max(1, round(h / scale)), max(1, round(w / scale)))
+
+    def down(x: torch.Tensor) -> torch.Tensor:
+        return F.interpolate(x.float(), size=small, mode="area") if scale > 1 else x.float()
+
+    num, den, g = down((confidence * depth)[None, None]), down(confidence[None, None]), down(guide)
     for n in range(passes):
-        k = 2 * int(4 * 2**n) + 1
-        num = guided_blur(guide, num, k, eps, border_type="reflect", separable=True)
-        den = guided_blur(guide, den, k, eps, border_type="reflect", separable=True)
+        k = 2 * max(1, round(4 * 2**n / scale)) + 1
+        num = guided_blur(g, num, k, eps, border_type="reflect", separable=True)
+        den = guided_blur(g, den, k, eps, border_type="reflect", separable=True)
+    ratio = num / den.clamp(min=1e-6)
+    if scale > 1:
+        ratio = F.interpolate(ratio, size=(h, w), mode="bilinear", align_corners=False)
     lo, hi = float(depth.amin()), float(depth.amax())
-    smooth = (num / den.clamp(min=1e-6))[0, 0].clamp(lo, hi)  # the guided filter's overshoot stays in range
+    smooth = ratio[0, 0].double().clamp(lo, hi)  # the guided filter's overshoot stays in range
     return confidence * depth + (1.0 - confidence) * smooth
 
 
@@ -161,7 +182,8 @@ def fuse_stack(slices: list[np.ndarray], focus_m: list[float], window_px: float 
     else:
         d = _regularise(raw_d, conf, guide.float().double())
     if known_diopters is None:
-        aif = (torch.softmax(SHARPEST_GAIN * torch.log(fm + 1e-12 * float(fm.mean()) + 1e-300), dim=0)[:, None] * stack).sum(0)
+        best = fm.argmax(dim=0)
+        aif = stack.gather(0, best[None, None].expand(1, 3, *best.shape))[0]
     else:
         aif = _bracket_blend(stack, diopters, d)
     dio = d.numpy()
