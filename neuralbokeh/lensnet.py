@@ -34,8 +34,10 @@ The skeleton of the paper, given what a lens blur is made of:
    *near*, *same surface* and *far* buckets (soft ramps ``occlusion_margin_px`` wide). Inside a
    bucket light is summed, so neighbouring bands of one sloped surface never occlude each
    other; across buckets it is composited near over same over far with sum-to-saturation
-   (light-field patent). Coverage that stays below 1 (what foregrounds hide in the AIF) is
-   filled by normalising (``fill="normalize"`` of the reference renderer).
+   (light-field patent). Coverage that stays below 1 (where a blurred foreground uncovers what
+   it hides in the AIF) is filled with the visible background around the occluder
+   (``fill = "background"``, as the reference renderer; ``"normalize"`` divides by the
+   coverage instead).
 6. *Reassembly.* Each tile scatters the light of its own core (cores partition the image; at
    the image border a core reaches to its window's edge), into its whole window; windows are
    summed into place (light adds, so a tile's blur crosses into its neighbours' cores exactly as
@@ -64,6 +66,7 @@ import torch.nn.functional as F
 from .apertures import Aperture, Disk, Gaussian, aperture_from_dict
 from .checks import check_finite
 from .render.fftconv import next_fast_len
+from .render.holes import hidden_background
 from .tiling import tile
 
 log = logging.getLogger(__name__)
@@ -332,9 +335,18 @@ class LensBokeh(nn.Module):
                 self.last_convolutions += int(idx.numel())
         return acc.view(b, n_t, 3, 6, win, win)
 
-    def composite(self, acc: torch.Tensor) -> torch.Tensor:
+    def hidden(self, x: torch.Tensor) -> torch.Tensor:
+        """Linear ``(B, 3, H, W)`` estimate of what foregrounds hide in the input ``(B, 4, H, W)``
+        (:func:`neuralbokeh.render.holes.hidden_background`, occluders looked for within half the
+        largest CoC the network is built for)."""
+        cfg = self.config
+        return hidden_background(self._decode(x[:, :3]), x[:, 3:] * cfg.coc_scale_px,
+                                 radius_px=math.ceil(cfg.coc_scale_px / 2.0))
+
+    def composite(self, acc: torch.Tensor, background: torch.Tensor | None = None) -> torch.Tensor:
         """Buckets ``(B, 3, 6, H, W)`` -> linear RGB ``(B, 3, H, W)``: near over same over far,
-        sum-to-saturation per channel, remaining holes filled by normalising."""
+        sum-to-saturation per channel; remaining holes filled with ``background`` ``(B, 3, H, W)``
+        (``fill = "background"``) or by normalising."""
         color, cover = acc[:, :, :3], acc[:, :, 3:].clamp_min(0.0)
         out = torch.zeros_like(color[:, 0])
         taken = torch.zeros_like(out)
@@ -344,6 +356,8 @@ class LensBokeh(nn.Module):
             frac = torch.minimum(torch.ones_like(a), room / a.clamp_min(_EPS))
             out = out + color[:, k] * frac
             taken = taken + a * frac
+        if background is not None:
+            return out + (1.0 - taken).clamp_min(0.0) * background
         return out / taken.clamp_min(_EPS)
 
     def forward(self, x: torch.Tensor, return_tiles: bool = False, tile_active: torch.Tensor | None = None,
@@ -354,8 +368,10 @@ class LensBokeh(nn.Module):
         cfg = self.config
         acc = self.tile_accumulators(x, tile_active, scales)  # (B, T, 3, 6, win, win)
         b, n_t, _, _, win, _ = acc.shape
+        background = self.hidden(x) if cfg.fill == "background" else None
         if return_tiles:
-            out = self.composite(acc.view(b * n_t, 3, 6, win, win))
+            bg = None if background is None else tile(background, cfg.layout).view(b * n_t, 3, win, win)
+            out = self.composite(acc.view(b * n_t, 3, 6, win, win), bg)
             return self._encode(out.clamp_min(0.0)).view(b, n_t * 3, win, win)
         rows, cols, t, t_o = cfg.layout
         hp, wp = rows * t + 2 * t_o, cols * t + 2 * t_o
@@ -364,7 +380,7 @@ class LensBokeh(nn.Module):
             for j in range(cols):
                 canvas[:, :, i * t : i * t + win, j * t : j * t + win] += acc[:, i * cols + j].reshape(b, 18, win, win)
         canvas = canvas[:, :, t_o : t_o + cfg.image_height, t_o : t_o + cfg.image_width]
-        out = self.composite(canvas.view(b, 3, 6, cfg.image_height, cfg.image_width))
+        out = self.composite(canvas.view(b, 3, 6, cfg.image_height, cfg.image_width), background)
         return self._encode(out.clamp_min(0.0))
 
     def tile_targets(self, y: torch.Tensor) -> torch.Tensor:

@@ -50,6 +50,7 @@ from .tiling import tile, untile
 
 ARCHITECTURES = ("lens", "paper")
 PUPIL_INITS = ("disk", "gaussian", "aperture")
+FILLS = ("background", "normalize")
 KERNELS = ("growing", "fixed3")
 TILINGS = ("overlap", "none", "no_overlap")
 HEADS = ("identity", "paper")
@@ -85,6 +86,10 @@ class ModelConfig:
         occlusion_margin_px: CoC difference (px) over which light changes from "same surface"
             to "in front of / behind" the receiving pixel (lens), > 0.
         init_aperture: ``ApertureModel.to_dict()`` of the data (for ``pupil_init = "aperture"``).
+        fill: what the lens architecture puts where its coverage falls short (what a blurred
+            foreground uncovers): ``"background"`` (the visible background around the occluder,
+            as the reference renderer's default) or ``"normalize"`` (divide by the coverage;
+            checkpoints written before this option).
         (``features``, ``overlap`` semantics, ``head`` and the FFT thresholds: paper only;
         ``tile``, ``overlap``, ``tiling``, ``kernels``, ``blocks``: both.)
     """
@@ -108,6 +113,7 @@ class ModelConfig:
     pupil_init: str = "disk"
     occlusion_margin_px: float = 2.0
     init_aperture: dict | None = None
+    fill: str = "background"
 
     def __post_init__(self) -> None:
         for name in ("image_height", "image_width", "features", "tile", "fft_min_kernel", "fft_min_kernel_train"):
@@ -129,7 +135,7 @@ class ModelConfig:
         if self.architecture == "lens" and self.coc_scale_px <= 0:
             raise ValueError(f"architecture 'lens' needs coc_scale_px > 0 px, got {self.coc_scale_px!r}")
         for name, allowed in (("tiling", TILINGS), ("kernels", KERNELS), ("head", HEADS),
-                              ("architecture", ARCHITECTURES), ("pupil_init", PUPIL_INITS)):
+                              ("architecture", ARCHITECTURES), ("pupil_init", PUPIL_INITS), ("fill", FILLS)):
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name} must be one of {allowed}, got {getattr(self, name)!r}")
 
@@ -162,6 +168,8 @@ class ModelConfig:
             raise ValueError(f"unknown model config keys {sorted(unknown)}; expected {sorted(known)}")
         if "architecture" not in d:  # checkpoints written before the switch hold the paper's network
             d = {**d, "architecture": "paper"}
+        if "fill" not in d:  # written before the background fill: they were trained normalising
+            d = {**d, "fill": "normalize"}
         return cls(**d)
 
 

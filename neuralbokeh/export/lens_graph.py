@@ -22,13 +22,15 @@ export is measured by ``benchmarks/bench_runtime.py``. ``LensBokeh.forward(x, sc
 the PyTorch reference the export is checked against.
 
 The windows' accumulators ((near, same, far) x (RGB, coverage)) are stacked and overlap-added in one ``Col2Im`` (opset 18), then
-composited near over far with sum-to-saturation, normalised and encoded, as
+composited near over far with sum-to-saturation, the coverage left short filled with the
+hidden-background estimate (or normalised, for ``fill = "normalize"``) and encoded, as
 ``LensBokeh.forward`` does. ``fp16`` runs the convolutions in float16 (inputs and kernels);
 gates, buckets and the composite stay float32.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from typing import Any
 
@@ -36,12 +38,14 @@ import numpy as np
 import onnx
 from onnx import TensorProto, helper
 
+from ..render.holes import pyramid_levels
 from .graph import _Builder, finish_model
 
 _EPS = 1e-8
 # Bands whose CoC stays >= 10 coarse px wide on a 2, 4 or 8 times coarser grid are convolved there
 # (benchmarks/bench_runtime.py measures the speed and the error against the direct export).
 LENS_DEFAULT_KERNELS = "multires:10"
+HIDDEN_JUMP_PX = 4.0  # as neuralbokeh.render.holes.hidden_background's default
 
 
 def parse_lens_kernels(spec: str) -> float:
@@ -86,6 +90,43 @@ def _branch(g: _Nodes, result: str, name: str) -> onnx.GraphProto:
     final = g.b.fresh(f"{name}.result")
     g.nodes.append(helper.make_node("Identity", [result], [final], name=final))
     return helper.make_graph(g.nodes, name, [], [_out(final)], g.b.initializers)
+
+
+def _hidden_background(top: _Nodes, x: str, cfg: Mapping[str, Any]) -> str:
+    """``(B, 3, H, W)`` linear estimate of what foregrounds hide, as ``LensBokeh.hidden``:
+    occluders by a separable max over ``2R + 1`` px (``R`` = half the largest CoC), then the
+    pull-push fill of :func:`neuralbokeh.render.holes.push_pull_fill` on the zero-padded
+    ``2^L`` square (``AveragePool`` 2x2, ``Resize`` x2 half-pixel)."""
+    h, w = int(cfg["image_height"]), int(cfg["image_width"])
+    _, rgb = _linear_rgb(top, x, cfg)
+    coc = top.op("Mul", top.op("Slice", x, top.c("bg.s3", [3], np.int64), top.c("bg.s4", [4], np.int64), top.c("bg.ax1", [1], np.int64)),
+                 top.c("bg.coc_scale", float(cfg["coc_scale_px"])))
+    r = int(math.ceil(float(cfg["coc_scale_px"]) / 2.0))
+    if r == 0:
+        return rgb  # nothing can hide anything: the fill is the AIF itself
+    far = top.op("MaxPool", coc, kernel_shape=[1, 2 * r + 1], pads=[0, r, 0, r], strides=[1, 1])
+    far = top.op("MaxPool", far, kernel_shape=[2 * r + 1, 1], pads=[r, 0, r, 0], strides=[1, 1])
+    hide = top.op("Less", coc, top.op("Sub", far, top.c("bg.jump", HIDDEN_JUMP_PX)))
+    keep = top.op("Cast", top.op("Not", hide), to=TensorProto.FLOAT)
+    side = 1 << pyramid_levels(h, w)
+    pads = top.c("bg.pads", [0, 0, 0, 0, 0, 0, side - h, side - w], np.int64)
+    image, weight = top.op("Pad", rgb, pads), top.op("Pad", keep, pads)  # zeros, weight 0 outside
+    levels = []
+    size = side
+    while size >= 2:  # pull: weight-normalised 2x2 means
+        levels.append((image, weight))
+        w_small = top.op("AveragePool", weight, kernel_shape=[2, 2], strides=[2, 2])
+        c_small = top.op("Div", top.op("AveragePool", top.op("Mul", image, weight), kernel_shape=[2, 2], strides=[2, 2]),
+                         top.op("Max", w_small, top.c("bg.tiny", 1e-12)))
+        image, weight = c_small, top.op("Min", top.op("Mul", w_small, top.c("bg.four", 4.0)), top.c("bg.one", 1.0))
+        size //= 2
+    filled = image
+    for image, weight in reversed(levels):  # push: fill each level from the next coarser one
+        up = top.op("Resize", filled, "", top.c("bg.x2", [1.0, 1.0, 2.0, 2.0]), mode="linear",
+                    coordinate_transformation_mode="half_pixel")
+        filled = top.op("Add", top.op("Mul", weight, image), top.op("Mul", top.op("Sub", top.c("bg.one", 1.0), weight), up))
+    return top.op("Slice", filled, top.c("bg.start", [0, 0], np.int64), top.c("bg.end", [h, w], np.int64),
+                  top.c("bg.axes", [2, 3], np.int64))
 
 
 def _linear_rgb(g: _Nodes, window: str, cfg: Mapping[str, Any]) -> tuple[str, str]:
@@ -248,7 +289,11 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], source_masks: np.ndarray
         lit, got = top.op("Mul", color, frac), top.op("Mul", cover, frac)
         out = lit if out is None else top.op("Add", out, lit)
         taken = got if taken is None else top.op("Add", taken, got)
-    linear = top.op("Max", top.op("Div", out, top.op("Max", taken, eps)), zero)
+    if cfg.get("fill", "normalize") == "background":
+        hole = top.op("Max", top.op("Sub", one, taken), zero)
+        linear = top.op("Max", top.op("Add", out, top.op("Mul", hole, _hidden_background(top, x, cfg))), zero)
+    else:
+        linear = top.op("Max", top.op("Div", out, top.op("Max", taken, eps)), zero)
     shifted = top.op("Add", linear, b.const("offset", float(cfg["norm_offset"])))
     scale = b.const("scale", float(cfg["norm_scale"]))
     top.nodes.append(helper.make_node("Div", [top.op("Sub", shifted, scale), top.op("Add", shifted, scale)], ["defocus"],

@@ -47,47 +47,60 @@ def occluders(coc: torch.Tensor, radius_px: int, jump_px: float = 4.0) -> torch.
 def push_pull_fill(image: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
     """Fill where ``weight`` is 0 from where it is 1 (pull-push interpolation).
 
+    The image is zero-padded (weight 0) to a ``2^L`` square, ``L = ceil(log2(max(H, W)))``, so
+    every level halves exactly (the same pyramid the ONNX export builds); at each level the
+    weight-normalised 2x2 averages are filled from the next coarser level, upsampled bilinearly.
+
     Args:
         image: ``(B, C, H, W)`` values (e.g. linear RGB).
         weight: ``(B, 1, H, W)`` confidence in [0, 1]: 1 keeps the pixel, 0 fills it.
 
     Returns:
-        ``(B, C, H, W)``: ``weight * image + (1 - weight) * coarse`` where ``coarse`` is the
-        weight-normalised average of the next coarser level, upsampled bilinearly. An image with
-        no weight at all comes back unchanged.
+        ``(B, C, H, W)``: ``weight * image + (1 - weight) * coarse``. An image with no weight
+        at all comes back unchanged.
     """
     check_shape("image", image, "B C H W")
     check_shape("weight", weight, "B 1 H W", B=image.shape[0], H=image.shape[2], W=image.shape[3])
     if not bool((weight > 0).any()):
         return image
-    levels = max(0, math.ceil(math.log2(max(image.shape[-2:]))))
-    return _pull_push(image, weight.to(image.dtype), levels)
+    h, w = image.shape[-2:]
+    side = 1 << pyramid_levels(h, w)
+    pad = (0, side - w, 0, side - h)
+    filled = _pull_push(F.pad(image, pad), F.pad(weight.to(image.dtype), pad))
+    return filled[..., :h, :w]
 
 
-def _pull_push(image: torch.Tensor, weight: torch.Tensor, levels: int) -> torch.Tensor:
-    if levels == 0 or min(image.shape[-2:]) < 2:
-        total = (image * weight).sum((-2, -1), keepdim=True) / weight.sum((-2, -1), keepdim=True).clamp_min(1e-12)
-        return weight * image + (1.0 - weight) * total
-    w_small = F.avg_pool2d(weight, 2, ceil_mode=True)
-    c_small = F.avg_pool2d(image * weight, 2, ceil_mode=True) / w_small.clamp_min(1e-12)
+def pyramid_levels(height: int, width: int) -> int:
+    """Levels ``L`` of the pull-push pyramid: the image fits a ``2^L`` square."""
+    return max(0, math.ceil(math.log2(max(height, width))))
+
+
+def _pull_push(image: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    if image.shape[-1] < 2:
+        return image
+    w_small = F.avg_pool2d(weight, 2)
+    c_small = F.avg_pool2d(image * weight, 2) / w_small.clamp_min(1e-12)
     # a coarse pixel with any support is trusted in proportion to it (at most fully)
-    coarse = _pull_push(c_small, (4.0 * w_small).clamp(max=1.0), levels - 1)
-    up = F.interpolate(coarse, size=image.shape[-2:], mode="bilinear", align_corners=False)
+    coarse = _pull_push(c_small, (4.0 * w_small).clamp(max=1.0))
+    up = F.interpolate(coarse, scale_factor=2.0, mode="bilinear", align_corners=False)
     return weight * image + (1.0 - weight) * up
 
 
-def hidden_background(aif: torch.Tensor, coc: torch.Tensor, jump_px: float = 4.0) -> torch.Tensor:
-    """The AIF with every occluder (:func:`occluders` within the largest blur radius) replaced by
-    the visible background around it (:func:`push_pull_fill`).
+def hidden_background(aif: torch.Tensor, coc: torch.Tensor, jump_px: float = 4.0, radius_px: int | None = None) -> torch.Tensor:
+    """The AIF with every occluder (:func:`occluders`) replaced by the visible background around
+    it (:func:`push_pull_fill`).
 
     Args:
         aif: ``(B, 3, H, W)`` all-in-focus linear RGB.
         coc: ``(B, 1, H, W)`` signed CoC in px.
         jump_px: the least CoC step (px) that counts as a depth discontinuity, > 0.
+        radius_px: how far (px) an occluder is looked for, >= 0 (default: half the largest
+            |CoC|, the reach of the widest blur).
 
     Returns:
         ``(B, 3, H, W)``, equal to ``aif`` wherever nothing nearer stands within reach.
     """
-    radius = math.ceil(float(coc.abs().max()) / 2.0) if coc.numel() else 0
-    hide = occluders(coc, radius, jump_px)
+    if radius_px is None:
+        radius_px = math.ceil(float(coc.abs().max()) / 2.0) if coc.numel() else 0
+    hide = occluders(coc, radius_px, jump_px)
     return push_pull_fill(aif, (~hide).to(aif.dtype))

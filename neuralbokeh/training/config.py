@@ -16,7 +16,7 @@ from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
-from ..model import ARCHITECTURES, HEADS, KERNELS, PUPIL_INITS, TILINGS
+from ..model import ARCHITECTURES, FILLS, HEADS, KERNELS, PUPIL_INITS, TILINGS
 
 
 @dataclass
@@ -57,6 +57,7 @@ class ModelSection:
     pupil_size: int = 48
     pupil_init: str = "disk"
     occlusion_margin_px: float = 2.0
+    fill: str = "background"
 
 
 @dataclass
@@ -123,6 +124,7 @@ class TrainConfig:
             ("model.head", m.head, HEADS),
             ("model.architecture", m.architecture, ARCHITECTURES),
             ("model.pupil_init", m.pupil_init, PUPIL_INITS),
+            ("model.fill", m.fill, FILLS),
             ("train.lr_schedule", t.lr_schedule, ("cosine", "constant")),
             ("train.lr_kernel_scaling", t.lr_kernel_scaling, ("fan_in", "none")),
             ("train.loss", t.loss, ("image", "tile")),

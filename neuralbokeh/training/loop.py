@@ -72,7 +72,7 @@ def model_config_for(cfg: TrainConfig, train_ds: FocalStackDataset) -> ModelConf
         fft_min_kernel=m.fft_min_kernel, fft_min_kernel_train=m.fft_min_kernel_train,
         architecture=m.architecture, coc_scale_px=float(train_ds.coc_scale_px),
         norm_scale=float(norm.scale), norm_offset=float(norm.offset), pupil_size=m.pupil_size,
-        pupil_init=m.pupil_init, occlusion_margin_px=float(m.occlusion_margin_px),
+        pupil_init=m.pupil_init, occlusion_margin_px=float(m.occlusion_margin_px), fill=m.fill,
         init_aperture=_same_across_scenes(train_ds, "aperture") if m.pupil_init == "aperture" else None,
     )
 
