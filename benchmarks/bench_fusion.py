@@ -72,7 +72,7 @@ def real(root: Path) -> None:
         fm = fuse.focus_measure(slices)
         t.append(time.perf_counter())
         diopters = np.linspace(1.0, 2.0, len(slices))
-        raw_d, conf = fuse._peak_diopters(fm, diopters)
+        raw_d, conf = fuse.peak_diopters(fm, diopters)
         t.append(time.perf_counter())
         stack = torch.stack([fuse._chw(s)[0] for s in slices]).double()
         first = stack.gather(0, fm.argmax(dim=0)[None, None].expand(1, 3, *fm.shape[1:]))[0]
