@@ -29,7 +29,7 @@ import numpy as np
 import torch
 
 from data_tools.mitsuba.render import render_aif, render_defocus, render_depth
-from data_tools.mitsuba.scenes import OCCLUSION_FG_FOCUS_M, OCCLUSION_WALL_M, Camera, fov_for_lens, occlusion_scene
+from data_tools.mitsuba.scenes import OCCLUSION_FG_FOCUS_M, OCCLUSION_WALL_M, axis_camera, occlusion_scene
 from data_tools.mitsuba.variant import activate
 from neuralbokeh.apertures import ApertureModel, Gaussian
 from neuralbokeh.metrics import image_metrics
@@ -63,6 +63,7 @@ def main() -> None:
     p.add_argument("--spp", type=int, default=8192, help="samples per pixel of the Mitsuba defocus (the truth)")
     p.add_argument("--steps", type=float, nargs="+", default=[0.25, 1.0, 2.0])
     p.add_argument("--jumps", type=float, nargs="+", default=[1.0, 2.0, 8.0])
+    p.add_argument("--cases", nargs="+", choices=["fg", "bg"], default=["fg", "bg"], help="blurred foreground, blurred background")
     p.add_argument("--seed", type=int, default=3)
     p.add_argument("--variant", default=None)
     p.add_argument("--save", type=Path, default=None, help="folder to write the AIF and the truths to (EXR)")
@@ -70,8 +71,7 @@ def main() -> None:
     mi = activate(args.variant)
     w, h = args.size
     lens = ThinLens(85.0, 1.4, 36.0)
-    look = mi.ScalarTransform4f().look_at(origin=[0, 0, 0], target=[0, 0, 1], up=[0, 1, 0])
-    cam = Camera(np.array(look.matrix, dtype=np.float64).reshape(4, 4), fov_for_lens(85.0, 36.0), w, h)
+    cam = axis_camera(mi, 85.0, 36.0, w, h)
     desc = occlusion_scene(mi, cam, args.seed)
     scene = mi.load_dict(desc)
     if args.save:
@@ -83,7 +83,8 @@ def main() -> None:
     print(f"mitsuba {mi.__version__} {mi.variant()}; {w}x{h}, 85 mm f/1.4, disk; truth {args.spp} spp thin-lens")
     if args.save:
         from neuralbokeh.io import write_image
-    for case, focus in (("fg blurred", OCCLUSION_WALL_M), ("bg blurred", OCCLUSION_FG_FOCUS_M)):
+    cases = {"fg": ("fg blurred", OCCLUSION_WALL_M), "bg": ("bg blurred", OCCLUSION_FG_FOCUS_M)}
+    for case, focus in (cases[c] for c in args.cases):
         coc = lens.coc_px(depth, focus, w, signed=True)
         t0 = time.perf_counter()
         truth = render_defocus(mi, scene, cam, lens, aperture, focus, args.spp, seed=17).image

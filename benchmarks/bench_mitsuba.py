@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from data_tools.mitsuba.render import render_aif, render_defocus, render_depth
-from data_tools.mitsuba.scenes import Camera, SceneParams, fov_for_lens, procedural_scene
+from data_tools.mitsuba.scenes import SceneParams, axis_camera, procedural_scene
 from data_tools.mitsuba.variant import activate
 from neuralbokeh.apertures import ApertureModel, Polygon
 from neuralbokeh.metrics import image_metrics
@@ -46,8 +46,7 @@ def main() -> None:
     mi = activate(args.variant)
     w, h = args.size
     lens = ThinLens(85.0, 1.4, 36.0)
-    look = mi.ScalarTransform4f().look_at(origin=[0, 0, 0], target=[0, 0, 1], up=[0, 1, 0])
-    cam = Camera(np.array(look.matrix, dtype=np.float64).reshape(4, 4), fov_for_lens(85.0, 36.0), w, h)
+    cam = axis_camera(mi, 85.0, 36.0, w, h)
     ap = ApertureModel(Polygon(7), cat_eye=0.6)
     params = SceneParams(near_m=1.5, far_m=12.0)
     print(f"mitsuba {mi.__version__} variant {mi.variant()}; {w}x{h} px, 85 mm f/1.4, 7 blades, cat-eye 0.6")

@@ -46,6 +46,14 @@ def fov_for_lens(focal_length_mm: float, sensor_width_mm: float) -> float:
     return math.degrees(2.0 * math.atan(sensor_width_mm / (2.0 * focal_length_mm)))
 
 
+def axis_camera(mi: ModuleType, focal_length_mm: float, sensor_width_mm: float, width: int, height: int) -> Camera:
+    """The procedural scenes' camera: at the origin looking along +z (+y up), with the field of
+    view of that lens on that sensor (:func:`fov_for_lens`), ``width x height`` px."""
+    look = mi.ScalarTransform4f().look_at(origin=[0, 0, 0], target=[0, 0, 1], up=[0, 1, 0])
+    return Camera(np.array(look.matrix, dtype=np.float64).reshape(4, 4), fov_for_lens(focal_length_mm, sensor_width_mm),
+                  width, height)
+
+
 @dataclass(frozen=True)
 class SceneParams:
     """Ranges of the procedural scenes (depths in m)."""
