@@ -170,24 +170,20 @@ def fuse_stack(slices: list[np.ndarray], focus_m: list[float], window_px: float 
         raise ValueError(f"need >= 2 distinct focus distances, got {sorted(set(focus_m))} m (within {tolerance:.3g} diopters)")
     if len(keep) < len(slices):
         slices, diopters, fm = [slices[i] for i in keep], diopters[keep], fm[keep]
-    raw_d, conf = peak_diopters(fm, diopters)
     stack = torch.stack([_chw(s)[0] for s in slices]).double()  # (K, 3, H, W)
-    first = stack.gather(0, fm.argmax(dim=0)[None, None].expand(1, 3, *fm.shape[1:]))[0]
-    guide = torch.log(first.clamp(min=0.0) + 1e-3 * float(first.mean()) + 1e-12)[None]
-    guide = (guide - guide.amin()) / (guide.amax() - guide.amin() + 1e-12)
     if known_diopters is not None:
         kd = known_diopters
         if kd.shape != tuple(fm.shape[1:]) or not np.isfinite(kd).all() or (kd < 0).any():
             raise ValueError(f"known depth must be > 0 m (inf allowed) with shape {tuple(fm.shape[1:])}, got shape {kd.shape}")
         d = torch.from_numpy(kd.astype(np.float64))
         conf = torch.ones_like(d)
-    else:
-        d = _regularise(raw_d, conf, guide.float().double())
-    if known_diopters is None:
-        best = fm.argmax(dim=0)
-        aif = stack.gather(0, best[None, None].expand(1, 3, *best.shape))[0]
-    else:
         aif = _bracket_blend(stack, diopters, d)
+    else:
+        raw_d, conf = peak_diopters(fm, diopters)
+        aif = stack.gather(0, fm.argmax(dim=0)[None, None].expand(1, 3, *fm.shape[1:]))[0]  # each pixel's sharpest slice
+        guide = torch.log(aif.clamp(min=0.0) + 1e-3 * float(aif.mean()) + 1e-12)[None]
+        guide = (guide - guide.amin()) / (guide.amax() - guide.amin() + 1e-12)
+        d = _regularise(raw_d, conf, guide)
     dio = d.numpy()
     with np.errstate(divide="ignore"):
         depth = np.where(dio > 0, 1.0 / np.maximum(dio, 1e-300), np.inf)
