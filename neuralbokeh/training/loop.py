@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import gc
 import json
 import logging
 import math
@@ -398,6 +399,11 @@ def _train(
             board.close()
         (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
     if distributed:
+        # DDP's reducer keeps the last gloo work objects; left alive past destroy_process_group they
+        # were freed in interpreter teardown, where gloo aborts about one run in 20 ("terminate called
+        # without an active exception"). Free the wrapper first, while the group still exists.
+        del net
+        gc.collect()
         dist.barrier()
         dist.destroy_process_group()
     return summary
