@@ -12,7 +12,7 @@ import argparse
 import logging
 import sys
 
-from neuralbokeh.cli import HelpFormatter, run_cli
+from neuralbokeh.core.cli import HelpFormatter, run_cli
 from neuralbokeh.export.exporter import export_checkpoint
 from neuralbokeh.export.lens_graph import LENS_DEFAULT_KERNELS
 from neuralbokeh.export.lowrank import DEFAULT_KERNELS

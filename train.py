@@ -11,7 +11,7 @@ import logging
 import os
 import sys
 
-from neuralbokeh.cli import HelpFormatter, run_cli
+from neuralbokeh.core.cli import HelpFormatter, run_cli
 from neuralbokeh.training import load_config, train
 
 

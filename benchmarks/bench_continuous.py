@@ -31,9 +31,9 @@ import torch
 from data_tools.mitsuba.render import render_aif, render_defocus, render_depth
 from data_tools.mitsuba.scenes import OCCLUSION_FG_FOCUS_M, OCCLUSION_WALL_M, axis_camera, occlusion_scene
 from data_tools.mitsuba.variant import activate
-from neuralbokeh.apertures import ApertureModel, Gaussian
-from neuralbokeh.metrics import image_metrics
-from neuralbokeh.optics import ThinLens
+from neuralbokeh.core.apertures import ApertureModel, Gaussian
+from neuralbokeh.evaluation.metrics import image_metrics
+from neuralbokeh.core.optics import ThinLens
 from neuralbokeh.render import scatter_defocus
 from neuralbokeh.render.baselines import gather_defocus, gaussian_defocus
 
@@ -82,7 +82,7 @@ def main() -> None:
     table = methods(aperture, args.steps, args.jumps)
     print(f"mitsuba {mi.__version__} {mi.variant()}; {w}x{h}, 85 mm f/1.4, disk; truth {args.spp} spp thin-lens")
     if args.save:
-        from neuralbokeh.io import write_image
+        from neuralbokeh.core.io import write_image
     cases = {"fg": ("fg blurred", OCCLUSION_WALL_M), "bg": ("bg blurred", OCCLUSION_FG_FOCUS_M)}
     for case, focus in (cases[c] for c in args.cases):
         coc = lens.coc_px(depth, focus, w, signed=True)

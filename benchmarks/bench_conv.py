@@ -19,7 +19,8 @@ import time
 import torch
 import torch.nn.functional as F
 
-from neuralbokeh.model import ModelConfig, NeuralBokeh, PerChannelConv
+from neuralbokeh.networks.config import ModelConfig
+from neuralbokeh.networks.paper import NeuralBokeh, PerChannelConv
 
 
 def _step_time(cfg: ModelConfig, batch: int, repeats: int) -> float:

@@ -23,9 +23,9 @@ import torch
 from data_tools.mitsuba.render import render_aif, render_defocus, render_depth
 from data_tools.mitsuba.scenes import SceneParams, axis_camera, procedural_scene
 from data_tools.mitsuba.variant import activate
-from neuralbokeh.apertures import ApertureModel, Polygon
-from neuralbokeh.metrics import image_metrics
-from neuralbokeh.optics import ThinLens
+from neuralbokeh.core.apertures import ApertureModel, Polygon
+from neuralbokeh.evaluation.metrics import image_metrics
+from neuralbokeh.core.optics import ThinLens
 from neuralbokeh.render import render_defocus as scatter_render
 
 

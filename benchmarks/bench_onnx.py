@@ -27,11 +27,11 @@ from pathlib import Path
 
 import numpy as np
 
-from neuralbokeh.data import FocalStackDataset
+from neuralbokeh.data.dataset import FocalStackDataset
 from neuralbokeh.export.exporter import export_checkpoint
 from neuralbokeh.export.lowrank import DEFAULT_KERNELS
-from neuralbokeh.runtime import BokehModel
-from neuralbokeh.training.checkpoint import load_checkpoint
+from neuralbokeh.runtime.onnx_model import BokehModel
+from neuralbokeh.checkpoint import load_checkpoint
 
 ROOT = Path(__file__).resolve().parents[1]
 

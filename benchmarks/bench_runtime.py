@@ -54,8 +54,8 @@ def make_frame(seed: int) -> tuple[np.ndarray, np.ndarray, dict, np.ndarray]:
     import torch
 
     from data_tools.procedural import SceneParams, composite_sharp, make_layers
-    from neuralbokeh.apertures import ApertureModel, parse_aperture
-    from neuralbokeh.optics import ThinLens
+    from neuralbokeh.core.apertures import ApertureModel, parse_aperture
+    from neuralbokeh.core.optics import ThinLens
     from neuralbokeh.render import scatter_layers
 
     layers = make_layers(np.random.default_rng(seed), H, W, SceneParams())
@@ -83,12 +83,12 @@ def make_model(out: Path, reuse: bool) -> dict[str, Path]:
     """The prior-initialised checkpoint and its three exports."""
     import torch
 
-    from neuralbokeh.apertures import ApertureModel, parse_aperture
+    from neuralbokeh.core.apertures import ApertureModel, parse_aperture
     from neuralbokeh.export.exporter import export_checkpoint
-    from neuralbokeh.model import ModelConfig, build_model
-    from neuralbokeh.normalization import Normalization
-    from neuralbokeh.optics import ThinLens
-    from neuralbokeh.training.checkpoint import save_checkpoint
+    from neuralbokeh.networks import ModelConfig, build_model
+    from neuralbokeh.core.normalization import Normalization
+    from neuralbokeh.core.optics import ThinLens
+    from neuralbokeh.checkpoint import save_checkpoint
 
     out.mkdir(parents=True, exist_ok=True)
     aperture = ApertureModel(parse_aperture("polygon:7"))
@@ -116,10 +116,10 @@ def make_model(out: Path, reuse: bool) -> dict[str, Path]:
 def trained_loss(ckpt: Path, data: Path, out: Path, threads: int) -> None:
     """Held-out PSNR (normalised, the training metric) of a trained checkpoint's direct and
     default exports through the runtime, and ms per frame (median over the samples)."""
-    from neuralbokeh.data import FocalStackDataset
+    from neuralbokeh.data.dataset import FocalStackDataset
     from neuralbokeh.export.exporter import export_checkpoint
-    from neuralbokeh.runtime import BokehModel
-    from neuralbokeh.training.checkpoint import load_checkpoint
+    from neuralbokeh.runtime.onnx_model import BokehModel
+    from neuralbokeh.checkpoint import load_checkpoint
 
     if data is None:
         raise SystemExit("error: --trained needs --data (the dataset it was trained on)")
@@ -151,7 +151,7 @@ def worker(args: argparse.Namespace) -> None:
     aif, coc = data["aif"], data["coc"]
     kind, _, arg = args.worker.partition(":")
     if kind == "onnx":
-        from neuralbokeh.runtime import BokehModel
+        from neuralbokeh.runtime.onnx_model import BokehModel
 
         model = BokehModel(arg, threads=args.threads)
 
@@ -160,7 +160,7 @@ def worker(args: argparse.Namespace) -> None:
     else:
         import torch
 
-        from neuralbokeh.apertures import ApertureModel, parse_aperture
+        from neuralbokeh.core.apertures import ApertureModel, parse_aperture
         from neuralbokeh.render import scatter_defocus
         from neuralbokeh.render.baselines import gaussian_defocus
 
@@ -168,8 +168,8 @@ def worker(args: argparse.Namespace) -> None:
         a = torch.from_numpy(aif).permute(2, 0, 1)[None].double()
         c = torch.from_numpy(coc)[None, None].double()
         if kind == "eager":
-            from neuralbokeh.normalization import Normalization
-            from neuralbokeh.training.checkpoint import load_model
+            from neuralbokeh.core.normalization import Normalization
+            from neuralbokeh.checkpoint import load_model
 
             model, ckpt = load_model(arg)
             norm = Normalization.from_dict(ckpt["normalization"])
@@ -208,7 +208,7 @@ def _row(spec: str, frame: Path, out: Path, threads: int, repeats: int) -> dict:
 
 
 def _psnr(a: np.ndarray, b: np.ndarray) -> float:
-    from neuralbokeh.normalization import Normalization
+    from neuralbokeh.core.normalization import Normalization
 
     norm = Normalization(0.18)
     mse = float(np.mean(((norm.encode(a.astype(np.float64)) - norm.encode(b.astype(np.float64))) / 2.0) ** 2))

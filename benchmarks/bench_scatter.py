@@ -26,7 +26,7 @@ import time
 import numpy as np
 import torch
 
-from neuralbokeh.apertures import ApertureModel, Polygon
+from neuralbokeh.core.apertures import ApertureModel, Polygon
 from neuralbokeh.render import scatter_defocus, scatter_layers
 
 

@@ -8,7 +8,7 @@
    ``data_tools.mitsuba`` (its fast variant when libLLVM >= 16 is installed).
 2. Trains the default network on the training split for ``--minutes`` (``configs/quickstart.toml``
    with the tiles scaled to the image: size/4 px cores, size/8 px overlap).
-3. Evaluates the checkpoint next to every classical baseline of ``neuralbokeh.evaluate`` on the
+3. Evaluates the checkpoint next to every classical baseline of ``neuralbokeh.evaluation.evaluate`` on the
    held-out split (``report/``: ``report.md``, error-vs-runtime plot, image grids) and prints it.
 """
 
@@ -43,7 +43,7 @@ def main() -> None:
         f"model.tile={args.size // 4}", f"model.overlap={args.size // 8}", "train.steps=1000000",
         "train.lr_schedule='constant'", "train.eval_every=1000000", "train.checkpoint_every=200",
         f"train.out_dir='{args.out}'", "--time-limit", str(args.minutes))
-    run("-m", "neuralbokeh.evaluate", "--data", str(args.data), "--test-fraction", "0.25",
+    run("-m", "neuralbokeh.evaluation", "--data", str(args.data), "--test-fraction", "0.25",
         "--models", str(args.out / "checkpoint.pt"), "--baselines", "all", "--repeats", "1", "--out", str(args.out / "report"))
 
 

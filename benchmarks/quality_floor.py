@@ -30,11 +30,11 @@ import torch
 from kornia.metrics import psnr, ssim
 
 from data_tools.synth import main as synth
-from neuralbokeh.apertures import ApertureModel, Gaussian
-from neuralbokeh.data import FocalStackDataset, Normalization
+from neuralbokeh.core.apertures import ApertureModel, Gaussian
+from neuralbokeh.data.dataset import FocalStackDataset, Normalization
 from neuralbokeh.render import scatter_defocus
 from neuralbokeh.training import load_config, train
-from neuralbokeh.training.ablations import VARIANTS
+from neuralbokeh.evaluation.ablations import VARIANTS
 
 ROOT = Path(__file__).resolve().parents[1]
 LENSES = {

@@ -5,7 +5,7 @@
 Writes into ``--out``: ``plate.exr`` (the scene's defocused slice: a photograph taken through
 the lens), ``render.exr`` (procedural cut-outs and HDR highlights over black, all in focus),
 ``depth.exr`` (their planar depth in metres, ``inf`` where there is nothing), ``alpha.exr``
-(their coverage) and prints the ``neuralbokeh.composite`` command with the slice's focus
+(their coverage) and prints the ``neuralbokeh.runtime.composite`` command with the slice's focus
 distance. The CG layer has the plate's size, so a model trained on the dataset applies.
 """
 
@@ -17,9 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
-from neuralbokeh.cli import HelpFormatter, run_cli
-from neuralbokeh.data import load_scene
-from neuralbokeh.io import write_image
+from neuralbokeh.core.cli import HelpFormatter, run_cli
+from neuralbokeh.data.dataset import load_scene
+from neuralbokeh.core.io import write_image
 
 from .procedural import SceneParams, composite_sharp, make_layers
 
@@ -53,7 +53,7 @@ def main(argv: list[str] | None = None) -> int:
     focus = meta["slices"][args.slice]["focus_m"]
     o = args.out
     print(f"wrote {o}/plate.exr, render.exr, depth.exr, alpha.exr ({w}x{h}); the plate is focused at {focus:.3f} m")
-    print(f"composite: .venv/bin/python -m neuralbokeh.composite --model MODEL.onnx --plate {o}/plate.exr "
+    print(f"composite: .venv/bin/python -m neuralbokeh.runtime.composite --model MODEL.onnx --plate {o}/plate.exr "
           f"--render {o}/render.exr --depth {o}/depth.exr --alpha {o}/alpha.exr --focus {focus:.3f} --out {o}/comp.exr")
     return 0
 

@@ -25,11 +25,11 @@ import torch
 from tqdm import tqdm
 
 from neuralbokeh import __version__
-from neuralbokeh.apertures import ApertureModel, parse_aperture
-from neuralbokeh.cli import HelpFormatter, run_cli
-from neuralbokeh.data import FocalStackDataset, write_scene
-from neuralbokeh.io import read_image
-from neuralbokeh.optics import ThinLens, blocks_for_coc, focus_sweep_m
+from neuralbokeh.core.apertures import ApertureModel, parse_aperture
+from neuralbokeh.core.cli import HelpFormatter, run_cli
+from neuralbokeh.data.dataset import FocalStackDataset, write_scene
+from neuralbokeh.core.io import read_image
+from neuralbokeh.core.optics import ThinLens, blocks_for_coc, focus_sweep_m
 from neuralbokeh.render import scatter_layers
 
 from .procedural import SceneParams, composite_sharp, make_layers

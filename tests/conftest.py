@@ -81,7 +81,7 @@ def busy(path: Path, out: Path, seed: int = 11) -> Path:
     network's pupils (log-transmission noise: lopsided, grainy kernels) and channel scales."""
     import torch
 
-    from neuralbokeh.training.checkpoint import load_checkpoint, save_checkpoint
+    from neuralbokeh.checkpoint import load_checkpoint, save_checkpoint
 
     data = load_checkpoint(path)
     g = torch.Generator().manual_seed(seed)

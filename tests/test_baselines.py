@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from neuralbokeh.apertures import ApertureModel, Disk, MaskAperture, Polygon
+from neuralbokeh.core.apertures import ApertureModel, Disk, MaskAperture, Polygon
 from neuralbokeh.render import scatter_defocus
 from neuralbokeh.render.baselines import gather_defocus, pseudo_ray_trace
 from neuralbokeh.render.buckets import bucket_gather

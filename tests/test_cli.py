@@ -42,8 +42,8 @@ def test_export_evaluate_composite_and_data_tools_mistakes(tmp_path):
     not_a_checkpoint.write_text("hello")
     _one_error_line(_run("export.py", str(not_a_checkpoint), "--out", str(tmp_path / "m.onnx")), "not a neuralbokeh checkpoint")
     _one_error_line(_run("export.py", str(tmp_path / "missing.pt"), "--out", str(tmp_path / "m.onnx")), "missing.pt")
-    _one_error_line(_run("-m", "neuralbokeh.evaluate", "--data", str(tmp_path / "nodata"), "--out", str(tmp_path / "r")), "nodata")
-    _one_error_line(_run("-m", "neuralbokeh.composite", "--model", str(tmp_path / "none.onnx"), "--plate", "p.exr", "--render", "r.exr",
+    _one_error_line(_run("-m", "neuralbokeh.evaluation", "--data", str(tmp_path / "nodata"), "--out", str(tmp_path / "r")), "nodata")
+    _one_error_line(_run("-m", "neuralbokeh.runtime.composite", "--model", str(tmp_path / "none.onnx"), "--plate", "p.exr", "--render", "r.exr",
                          "--depth", "d.exr", "--alpha", "a.exr", "--focus", "2", "--out", str(tmp_path / "c.exr")), "none.onnx")
     _one_error_line(_run("-m", "data_tools.synth", "--out", str(tmp_path / "s"), "--size", "0", "0"), "--size")
     _one_error_line(_run("-m", "data_tools.raw", str(tmp_path / "nostack"), "--out", str(tmp_path / "o")), "nostack")
@@ -53,7 +53,7 @@ def test_evaluate_refuses_a_model_of_another_size(busy_onnx, tmp_path):
     from data_tools.synth import main as synth
 
     assert synth(["--out", str(tmp_path / "d"), "--scenes", "2", "--size", "24", "16", "--slices", "1", "--seed", "1"]) == 0
-    r = _run("-m", "neuralbokeh.evaluate", "--data", str(tmp_path / "d"), "--models", str(busy_onnx), "--baselines", "none",
+    r = _run("-m", "neuralbokeh.evaluation", "--data", str(tmp_path / "d"), "--models", str(busy_onnx), "--baselines", "none",
              "--split", "all", "--out", str(tmp_path / "r"))
     _one_error_line(r, "is for 40x32 images, the data is 24x16")
 
@@ -66,7 +66,7 @@ def test_verbose_shows_the_traceback(tmp_path):
     assert r.stderr.strip().splitlines()[-1].startswith("error: ")
 
 
-@pytest.mark.parametrize("tool", ["train.py", "export.py", "-m neuralbokeh.evaluate", "-m neuralbokeh.composite",
+@pytest.mark.parametrize("tool", ["train.py", "export.py", "-m neuralbokeh.evaluation", "-m neuralbokeh.runtime.composite",
                                   "-m data_tools.synth", "-m data_tools.demo_composite", "-m data_tools.raw"])
 def test_every_option_has_help(tool):
     import re

@@ -6,10 +6,10 @@ import torch
 from kornia.filters import gaussian_blur2d
 from kornia.morphology import erosion
 
-from neuralbokeh.composite import composite_frame, main
-from neuralbokeh.io import read_image, write_image
-from neuralbokeh.masks import erode, gaussian_blur
-from neuralbokeh.runtime import BokehModel
+from neuralbokeh.runtime.composite import composite_frame, main
+from neuralbokeh.core.io import read_image, write_image
+from neuralbokeh.runtime.masks import erode, gaussian_blur
+from neuralbokeh.runtime.onnx_model import BokehModel
 
 
 @pytest.mark.parametrize("radius", [1, 2])

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import torch
 
-from neuralbokeh.apertures import ApertureModel, Polygon
-from neuralbokeh.data import FocalStackDataset, Normalization, find_scenes, load_scene, split_scenes, write_scene
-from neuralbokeh.io import write_image
-from neuralbokeh.optics import ThinLens
+from neuralbokeh.core.apertures import ApertureModel, Polygon
+from neuralbokeh.data.dataset import FocalStackDataset, Normalization, find_scenes, load_scene, split_scenes, write_scene
+from neuralbokeh.core.io import write_image
+from neuralbokeh.core.optics import ThinLens
 
 LENS = ThinLens(85.0, 1.4, 36.0)
 
@@ -122,7 +122,7 @@ def test_write_scene_is_atomic(tmp_path, monkeypatch):
             raise OSError("disk full")
         return real(path, *a, **k)
 
-    monkeypatch.setattr("neuralbokeh.data.write_image", flaky)
+    monkeypatch.setattr("neuralbokeh.data.dataset.write_image", flaky)
     with pytest.raises(OSError, match="disk full"):
         write_scene(tmp_path / "s", aif, depth, defocus, cocs, LENS, focus, ApertureModel(), {})
     assert list(tmp_path.iterdir()) == []  # neither the scene nor its temporary folder

@@ -15,11 +15,11 @@ from data_tools.procedural import SceneParams, composite_sharp, make_layers
 from data_tools.raw.__main__ import main as raw_main
 from data_tools.raw.developed import decode_developed, exposure_gains, parse_transfer
 from data_tools.raw.fuse import focus_measure
-from neuralbokeh.apertures import ApertureModel
-from neuralbokeh.data import load_scene
-from neuralbokeh.io import read_image, write_image
-from neuralbokeh.metrics import image_metrics
-from neuralbokeh.optics import ThinLens, focus_sweep_m
+from neuralbokeh.core.apertures import ApertureModel
+from neuralbokeh.data.dataset import load_scene
+from neuralbokeh.core.io import read_image, write_image
+from neuralbokeh.evaluation.metrics import image_metrics
+from neuralbokeh.core.optics import ThinLens, focus_sweep_m
 from neuralbokeh.render import scatter_layers
 
 LENS = ThinLens(50.0, 1.8, 12.0)

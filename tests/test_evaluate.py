@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from neuralbokeh.apertures import ApertureModel, Polygon
-from neuralbokeh.evaluate import BASELINES, main
-from neuralbokeh.metrics import flip_hdr, image_metrics, pareto_front, tonemap_srgb
+from neuralbokeh.core.apertures import ApertureModel, Polygon
+from neuralbokeh.evaluation.evaluate import BASELINES, main
+from neuralbokeh.evaluation.metrics import flip_hdr, image_metrics, pareto_front, tonemap_srgb
 from neuralbokeh.render import scatter_defocus
 from neuralbokeh.render.baselines import gather_defocus, gaussian_defocus, pseudo_ray_trace
 
@@ -99,7 +99,7 @@ def test_report_files_and_identity_row(tiny_dataset, busy_onnx, tmp_path):
         assert (tmp_path / "report" / name).is_file(), name
     report = json.loads((tmp_path / "report" / "report.json").read_text())
     assert list(report["methods"]) == ["busy.onnx", *BASELINES]
-    from neuralbokeh.data import FocalStackDataset
+    from neuralbokeh.data.dataset import FocalStackDataset
 
     ds = FocalStackDataset(tiny_dataset, "test", 0.2, 0, normalize=False)
     it = ds[0]
@@ -114,8 +114,8 @@ def test_report_files_and_identity_row(tiny_dataset, busy_onnx, tmp_path):
 
 
 def test_split_all_and_the_default_split_follows_the_training_run(tiny_dataset, busy_checkpoint, busy_onnx, tmp_path):
-    from neuralbokeh.evaluate import load_model_method, split_of_models
-    from neuralbokeh.training.checkpoint import load_checkpoint, save_checkpoint
+    from neuralbokeh.evaluation.evaluate import load_model_method, split_of_models
+    from neuralbokeh.checkpoint import load_checkpoint, save_checkpoint
 
     rc = main(["--data", str(tiny_dataset), "--baselines", "identity", "--split", "all", "--out", str(tmp_path / "all"),
                "--repeats", "1", "--threads", "1"])

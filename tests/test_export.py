@@ -14,7 +14,7 @@ from neuralbokeh.export.exporter import calibration_inputs, export_checkpoint, p
 from neuralbokeh.export.lens_graph import LENS_DEFAULT_KERNELS
 from neuralbokeh.export.lowrank import cheaper_ranks, factorize, parse_kernels, reconstruct, relative_error
 from neuralbokeh.training import load_model
-from neuralbokeh.training.checkpoint import load_checkpoint
+from neuralbokeh.checkpoint import load_checkpoint
 
 ROOT = Path(__file__).resolve().parents[1]
 

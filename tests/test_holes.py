@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from neuralbokeh.render.holes import hidden_background, occluders, push_pull_fill
+from neuralbokeh.ops.holes import hidden_background, occluders, push_pull_fill
 
 
 def test_occluders_match_the_literal_definition():

@@ -3,7 +3,7 @@ import os
 import numpy as np
 import pytest
 
-from neuralbokeh.io import read_image, read_json, write_image, write_json
+from neuralbokeh.core.io import read_image, read_json, write_image, write_json
 
 
 def test_exr_round_trip_is_exact_with_hdr_and_inf(tmp_path):
@@ -51,7 +51,7 @@ def test_write_is_atomic_and_leaves_no_temp_files(tmp_path, monkeypatch):
         def close(self):
             pass
 
-    monkeypatch.setattr("neuralbokeh.io.oiio.ImageOutput", FailsHalfway)
+    monkeypatch.setattr("neuralbokeh.core.io.oiio.ImageOutput", FailsHalfway)
     with pytest.raises(OSError, match="cannot write .*a.exr: disk full"):
         write_image(target, np.zeros((2, 2, 3)))
     assert target.read_bytes() == before  # the old file is untouched

@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 import torch
 
-from neuralbokeh.apertures import ApertureModel, Disk
-from neuralbokeh.lensnet import band_diameters, band_gates, band_scales, bucket_weights, reduce_kernel
-from neuralbokeh.model import ModelConfig, build_model
-from neuralbokeh.normalization import Normalization
+from neuralbokeh.core.apertures import ApertureModel, Disk
+from neuralbokeh.networks.lens import band_diameters, band_gates, band_scales, bucket_weights, reduce_kernel
+from neuralbokeh.networks import ModelConfig, build_model
+from neuralbokeh.core.normalization import Normalization
 from neuralbokeh.render import scatter_defocus, scatter_layers
 
 NORM = Normalization()
@@ -154,7 +154,7 @@ def test_bands_no_pixel_uses_are_not_computed_and_inactive_tiles_are_exact():
 
 def test_trains_towards_a_lens_it_was_not_started_from(tmp_path):
     """A Gaussian start learns a 7-blade cat-eye lens from a few samples: loss falls."""
-    from neuralbokeh.apertures import Polygon
+    from neuralbokeh.core.apertures import Polygon
 
     torch.manual_seed(0)
     lens = ApertureModel(Polygon(7), cat_eye=0.5)

@@ -15,11 +15,11 @@ from data_tools.mitsuba.render import (  # noqa: E402
     planar_depth_from_aov, render_aif, render_defocus, render_depth, tangent_grid)
 from data_tools.mitsuba.scenes import Camera, fov_for_lens  # noqa: E402
 from data_tools.mitsuba.variant import activate, llvm_candidates, probe  # noqa: E402
-from neuralbokeh.apertures import ApertureModel, Disk, MaskAperture, Polygon  # noqa: E402
-from neuralbokeh.data import FocalStackDataset  # noqa: E402
-from neuralbokeh.metrics import image_metrics  # noqa: E402
-from neuralbokeh.optics import ThinLens  # noqa: E402
-from neuralbokeh.render import render_defocus as scatter_render  # noqa: E402
+from neuralbokeh.core.apertures import ApertureModel, Disk, MaskAperture, Polygon
+from neuralbokeh.data.dataset import FocalStackDataset
+from neuralbokeh.evaluation.metrics import image_metrics
+from neuralbokeh.core.optics import ThinLens
+from neuralbokeh.render import render_defocus as scatter_render
 
 
 @pytest.fixture(scope="module")
@@ -207,7 +207,7 @@ def test_cli_renders_a_users_xml_scene_in_its_units(mi, tmp_path):
 
 
 def test_a_square_aperture_renders_a_square(mi):
-    # The one pupil definition (neuralbokeh.apertures.pupil_grid): an all-ones mask is the
+    # The one pupil definition (neuralbokeh.core.apertures.pupil_grid): an all-ones mask is the
     # whole pupil square, as in the kernels; Mitsuba's lens points used to be cut to a disk.
     cam = _camera(mi, 40, 40)
     lens = ThinLens(50.0, 1.2, 36.0)

@@ -1,7 +1,8 @@
 import pytest
 import torch
 
-from neuralbokeh.model import ModelConfig, NeuralBokeh, PerChannelConv, tile, untile
+from neuralbokeh.networks.config import ModelConfig
+from neuralbokeh.networks.paper import NeuralBokeh, PerChannelConv, tile, untile
 
 
 def _x(b, h, w, seed=0):

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from neuralbokeh.optics import ThinLens, blocks_for_coc, focus_sweep_m, max_coc_px
+from neuralbokeh.core.optics import ThinLens, blocks_for_coc, focus_sweep_m, max_coc_px
 
 LENS = ThinLens(50.0, 2.0, 36.0)
 

@@ -12,9 +12,9 @@ from kornia.filters import gaussian_blur2d, laplacian
 from data_tools.raw.__main__ import main as raw_main
 from data_tools.raw.decode import RawDecodeError, decode, read_metadata, white_balance
 from data_tools.raw.synthetic import BLACK, WHITE, make_stack, mosaic, write_dng
-from neuralbokeh.data import FocalStackDataset, load_scene
-from neuralbokeh.io import read_image
-from neuralbokeh.optics import ThinLens
+from neuralbokeh.data.dataset import FocalStackDataset, load_scene
+from neuralbokeh.core.io import read_image
+from neuralbokeh.core.optics import ThinLens
 
 LENS = ThinLens(50.0, 1.8, 12.0)
 

@@ -5,10 +5,10 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from neuralbokeh.apertures import ApertureModel, Disk, Heart, Polygon, Star, shape_kernel
-from neuralbokeh.optics import ThinLens
+from neuralbokeh.core.apertures import ApertureModel, Disk, Heart, Polygon, Star, shape_kernel
+from neuralbokeh.core.optics import ThinLens
 from neuralbokeh.render import fft_convolve2d, render_defocus, scatter_defocus, scatter_layers
-from neuralbokeh.render.holes import hidden_background
+from neuralbokeh.ops.holes import hidden_background
 from neuralbokeh.render.scatter import auto_field_grid
 from neuralbokeh.render.reference import reference_scatter_defocus, reference_scatter_layers
 
@@ -47,7 +47,7 @@ def test_fft_convolve_gradients():
 
 
 def test_fft_convolve_full_mode_and_fast_lengths():
-    from neuralbokeh.render.fftconv import next_fast_len
+    from neuralbokeh.ops.fftconv import next_fast_len
 
     assert [next_fast_len(n) for n in (1, 11, 13, 97, 121)] == [1, 12, 14, 98, 125]
     x = torch.zeros(1, 1, 5, 6, dtype=torch.float64)

@@ -34,39 +34,87 @@ def _imports(path: Path) -> set[str]:
     return names
 
 
+# The package's folders, each with the folders it may import (besides itself). Arrows point one
+# way: lower layers never import higher ones, and the torch-free wing (core, runtime) imports
+# nothing that needs torch. A new folder must be placed here.
+LAYERS = {
+    "core": set(),  # torch-free foundations: checks, optics, apertures, normalisation, I/O, CLI helpers
+    "runtime": {"core"},  # torch-free: onnxruntime; compositing machines have no torch
+    "ops": {"core"},  # torch image ops shared by networks and renderers
+    "networks": {"core", "ops"},  # pure definitions
+    "render": {"core", "ops"},  # classical renderers
+    "data": {"core"},  # the dataset on disk
+    "checkpoint": {"core", "networks"},
+    "export": {"core", "runtime", "ops", "networks", "checkpoint"},
+    "training": {"core", "ops", "networks", "render", "data", "checkpoint"},
+    "evaluation": {"core", "runtime", "ops", "networks", "render", "data", "checkpoint", "training"},
+}
+TORCH_FREE = ("core", "runtime")
+
+
+def _internal_imports(path: Path) -> set[str]:
+    """The package folders (or top-level modules) a file of the package imports."""
+    rel = path.relative_to(ROOT / "neuralbokeh").with_suffix("")
+    package = ["neuralbokeh", *rel.parts[:-1]] if rel.name != "__init__" else ["neuralbokeh", *rel.parts[:-1]]
+    out = set()
+    for name in _imports(path):
+        if name.startswith("."):
+            level = len(name) - len(name.lstrip("."))
+            base = package[: len(package) - level + 1] if level > 1 else package
+            full = base + [p for p in name.lstrip(".").split(".") if p]
+        else:
+            full = name.split(".")
+        if full[0] == "neuralbokeh" and len(full) > 1:
+            out.add(full[1])
+    return out
+
+
+def _folder(path: Path) -> str:
+    rel = path.relative_to(ROOT / "neuralbokeh")
+    return rel.parts[0] if len(rel.parts) > 1 else rel.stem
+
+
+def test_every_folder_imports_only_the_layers_below_it():
+    for path in sorted((ROOT / "neuralbokeh").rglob("*.py")):
+        folder = _folder(path)
+        if folder == "__init__":
+            assert not _internal_imports(path), path
+            continue
+        assert folder in LAYERS, f"{path}: place the folder {folder!r} in LAYERS"
+        wrong = _internal_imports(path) - LAYERS[folder] - {folder}
+        assert not wrong, f"{path.relative_to(ROOT)} ({folder}) imports {sorted(wrong)}; it may import {sorted(LAYERS[folder])}"
+
+
+def test_layers_have_no_cycle():
+    done: set[str] = set()
+    while len(done) < len(LAYERS):
+        ready = [f for f, below in LAYERS.items() if f not in done and below <= done]
+        assert ready, f"cycle among {sorted(set(LAYERS) - done)}"
+        done |= set(ready)
+
+
+def test_torch_free_wing_never_imports_torch():
+    # compositing machines have no torch: core and runtime, checked by import
+    modules = sorted(".".join(("neuralbokeh",) + p.relative_to(ROOT / "neuralbokeh").with_suffix("").parts)
+                     for folder in TORCH_FREE for p in (ROOT / "neuralbokeh" / folder).rglob("*.py") if p.name != "__main__.py")
+    for path in (p for folder in TORCH_FREE for p in (ROOT / "neuralbokeh" / folder).rglob("*.py")):
+        assert not any(n.split(".")[0] in ("torch", "kornia") for n in _imports(path)), path
+    code = f"import sys, importlib; [importlib.import_module(m) for m in {modules!r}]; assert 'torch' not in sys.modules, 'torch was imported'"
+    subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)
+
+
+def test_networks_are_pure_definitions():
+    # the networks know nothing of files, datasets or training (DESIGN.md)
+    for path in (ROOT / "neuralbokeh" / "networks").rglob("*.py"):
+        imports = _imports(path)
+        assert not any(n.rsplit(".", 1)[-1] in ("io", "cli") or n.startswith("OpenImageIO") for n in imports), (path, imports)
+
+
 def test_library_never_imports_the_tools_and_never_prints():
-    """Library code logs; only ``neuralbokeh/cli.py`` (the error line every CLI ends with) prints."""
+    """Library code logs; only ``neuralbokeh/core/cli.py`` (the error line every CLI ends with) prints."""
     for path in (ROOT / "neuralbokeh").rglob("*.py"):
         assert not any(n.startswith("data_tools") for n in _imports(path)), path
-        if path.name == "cli.py" and path.parent.name == "neuralbokeh":
+        if path.relative_to(ROOT).as_posix() == "neuralbokeh/core/cli.py":
             continue
         calls = [n for n in ast.walk(ast.parse(path.read_text())) if isinstance(n, ast.Call)]
         assert not any(isinstance(c.func, ast.Name) and c.func.id == "print" for c in calls), f"print() in {path}"
-
-
-def test_pure_math_modules_import_no_torch_and_nothing_else_of_the_package():
-    for name in ("optics", "apertures", "checks"):
-        package_imports = {n for n in _imports(ROOT / "neuralbokeh" / f"{name}.py") if n.startswith(".")}
-        assert package_imports <= {".checks"}, (name, package_imports)
-    code = (
-        "import sys, neuralbokeh, neuralbokeh.optics, neuralbokeh.apertures, neuralbokeh.checks; "
-        "assert 'torch' not in sys.modules, 'torch was imported'"
-    )
-    subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)
-
-
-def test_model_is_pure_definitions():
-    # the networks know nothing of files, datasets or training (DESIGN.md)
-    for name in ("model", "lensnet", "tiling"):
-        imports = _imports(ROOT / "neuralbokeh" / f"{name}.py")
-        assert not any(n.lstrip(".").split(".")[0] in ("io", "data", "training", "OpenImageIO") for n in imports), (name, imports)
-
-
-def test_compositing_path_never_imports_torch():
-    # DESIGN.md: compositing machines have no torch
-    for name in ("runtime", "composite", "masks", "normalization", "optics", "checks", "io"):
-        imports = _imports(ROOT / "neuralbokeh" / f"{name}.py")
-        assert not any(n.split(".")[0] in ("torch", "kornia") for n in imports), (name, imports)
-    code = ("import sys, neuralbokeh.runtime, neuralbokeh.composite, neuralbokeh.masks; "
-            "assert 'torch' not in sys.modules, 'torch was imported'")
-    subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from neuralbokeh.normalization import Normalization
-from neuralbokeh.runtime import BokehModel
+from neuralbokeh.core.normalization import Normalization
+from neuralbokeh.runtime.onnx_model import BokehModel
 from neuralbokeh.training import load_model
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -131,8 +131,8 @@ def test_bands_no_pixel_of_a_tile_uses_are_left_out_exactly(busy_onnx, busy_chec
 def test_active_bands_hold_every_band_the_network_uses(busy_onnx, busy_checkpoint):
     """The runtime's band flags (numpy, float64) cover the PyTorch model's own test (float32), at
     band centres and edges too, where the two could round differently."""
-    from neuralbokeh.lensnet import _gate, band_diameters, band_position
-    from neuralbokeh.tiling import tile
+    from neuralbokeh.networks.lens import _gate, band_diameters, band_position
+    from neuralbokeh.ops.tiles import tile
 
     m = BokehModel(busy_onnx, threads=1)
     model, _ = load_model(busy_checkpoint)

@@ -12,10 +12,10 @@ import pytest
 import torch
 
 from neuralbokeh.export.exporter import export_checkpoint, probe_inputs, run_session, session
-from neuralbokeh.model import ModelConfig, build_model
-from neuralbokeh.normalization import Normalization
+from neuralbokeh.networks import ModelConfig, build_model
+from neuralbokeh.core.normalization import Normalization
 from neuralbokeh.training import load_model
-from neuralbokeh.training.checkpoint import save_checkpoint
+from neuralbokeh.checkpoint import save_checkpoint
 
 TOLERANCE = {False: 1e-4, True: 2e-2}
 

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from neuralbokeh.model import ModelConfig
+from neuralbokeh.networks.config import ModelConfig
 from neuralbokeh.training import load_config, load_model, train
 from neuralbokeh.training import loop as loop_module
 
@@ -199,7 +199,7 @@ def test_model_section_mirrors_model_config():
 
 
 def test_large_kernels_learn_at_lr_over_fan_in():
-    from neuralbokeh.model import NeuralBokeh
+    from neuralbokeh.networks.paper import NeuralBokeh
     from neuralbokeh.training.loop import param_groups
 
     model = NeuralBokeh(ModelConfig(image_height=16, image_width=16, blocks=3, features=2, tile=16, overlap=0, architecture="paper"))
@@ -211,7 +211,7 @@ def test_large_kernels_learn_at_lr_over_fan_in():
 
 
 def test_ablation_runner_writes_table_one(tiny_dataset, tmp_path):
-    from neuralbokeh.training.ablations import VARIANTS, main
+    from neuralbokeh.evaluation.ablations import VARIANTS, main
 
     cfg = _config(tmp_path / "cfg", tiny_dataset)
     path = tmp_path / "cfg" / "cfg.toml"

@@ -21,11 +21,11 @@ import numpy as np
 from tqdm import tqdm
 
 from neuralbokeh import __version__
-from neuralbokeh.apertures import ApertureModel, parse_aperture
-from neuralbokeh.cli import HelpFormatter, run_cli
-from neuralbokeh.data import write_scene
-from neuralbokeh.io import read_image
-from neuralbokeh.optics import ThinLens, focus_sweep_m
+from neuralbokeh.core.apertures import ApertureModel, parse_aperture
+from neuralbokeh.core.cli import HelpFormatter, run_cli
+from neuralbokeh.data.dataset import write_scene
+from neuralbokeh.core.io import read_image
+from neuralbokeh.core.optics import ThinLens, focus_sweep_m
 
 from .render import METHODS, choose_method, render_aif, render_defocus, render_depth
 from .scenes import Camera, SceneParams, camera_from_xml, fov_for_lens, procedural_scene

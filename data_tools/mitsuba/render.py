@@ -2,7 +2,7 @@
 
 Camera model. All images of a scene share one pinhole camera (pose, horizontal field of view
 ``camera.fov_x_deg``, film size), so every slice is pixel-registered with the AIF (no focus
-breathing). For the CoC of ``neuralbokeh.optics.ThinLens`` (``c = K (1/d_f - 1/d)``, ``K``
+breathing). For the CoC of ``neuralbokeh.core.optics.ThinLens`` (``c = K (1/d_f - 1/d)``, ``K``
 from the lens-to-sensor distance at that focus) to hold in this camera, the lens radius in
 the scene is ``R = K * 2 tan(fov_x / 2) / (2 W)`` metres: with the field of view of the lens
 focused at infinity that is ``d_s / (2 N)``. :func:`lens_radius_m` computes it; the tests check
@@ -16,7 +16,7 @@ Defocus, two ways (both put the focus plane at planar depth ``d_f``):
   point and its principal point shifted (``principal_point_offset_x/y``) so that the focus
   plane stays registered; their mean is the defocused image. Any aperture shape (points on a
   jittered grid, weighted by the shape's transmission) works the same way. Cat-eye
-  vignetting follows ``neuralbokeh.apertures.ApertureModel`` (and so our scatter renderer): a
+  vignetting follows ``neuralbokeh.core.apertures.ApertureModel`` (and so our scatter renderer): a
   scene point's bundle is clipped by the vignetting circle of *its own* field position. Each
   view also renders the depth AOV, which gives every ray's scene point, its CoC and so its
   pinhole image position; the ray counts only when its lens point is inside that position's
@@ -26,7 +26,7 @@ Defocus, two ways (both put the focus plane at planar depth ``d_f``):
 A lens point ``(u, v)`` of the pupil square ``[-1, 1]^2`` (u right, v up as seen in the image) sits at camera
 coordinates ``(-u R, v R, 0)`` (Mitsuba camera space: image right is -x), so that a point
 behind the focus plane images as the upright aperture shape and one in front as its point
-reflection, the convention of ``neuralbokeh.apertures``.
+reflection, the convention of ``neuralbokeh.core.apertures``.
 
 Depth. The ``depth`` AOV is the ray distance from the near-clip plane (``near_clip`` times the
 ray's length per unit of planar depth), 0 for misses, and mixed at edges unless the film uses
@@ -45,9 +45,9 @@ from typing import Any
 
 import numpy as np
 
-from neuralbokeh.apertures import ApertureModel, Disk, field_position, pupil_grid
-from neuralbokeh.checks import check_at_least, check_positive
-from neuralbokeh.optics import ThinLens
+from neuralbokeh.core.apertures import ApertureModel, Disk, field_position, pupil_grid
+from neuralbokeh.core.checks import check_at_least, check_positive
+from neuralbokeh.core.optics import ThinLens
 
 from .scenes import Camera
 
@@ -112,7 +112,7 @@ def lens_radius_m(lens: ThinLens, focus_m: float, camera: Camera) -> float:
 
 def lens_points(aperture: ApertureModel, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """Points of the pupil on a jittered ``n x n`` grid where the shape transmits
-    (:func:`neuralbokeh.apertures.pupil_grid`): ``(M, 2)`` as (u right, v up) and their
+    (:func:`neuralbokeh.core.apertures.pupil_grid`): ``(M, 2)`` as (u right, v up) and their
     transmissions ``(M,)``."""
     return pupil_grid(aperture.shape, n, rng)
 

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from neuralbokeh.checks import check_positive
+from neuralbokeh.core.checks import check_positive
 
 
 @dataclass(frozen=True)

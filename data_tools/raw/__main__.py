@@ -36,10 +36,10 @@ import torch.nn.functional as F
 from tqdm import tqdm
 
 from neuralbokeh import __version__
-from neuralbokeh.cli import HelpFormatter, run_cli
-from neuralbokeh.data import write_scene
-from neuralbokeh.io import read_image
-from neuralbokeh.optics import ThinLens
+from neuralbokeh.core.cli import HelpFormatter, run_cli
+from neuralbokeh.data.dataset import write_scene
+from neuralbokeh.core.io import read_image
+from neuralbokeh.core.optics import ThinLens
 
 from .align import align_stack
 from .decode import (

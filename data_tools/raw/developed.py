@@ -27,7 +27,7 @@ import torch
 import torch.nn.functional as F
 from kornia.color import rgb_to_linear_rgb
 
-from neuralbokeh.io import read_image
+from neuralbokeh.core.io import read_image
 
 from .decode import RawDecodeError
 

@@ -24,10 +24,10 @@ import numpy as np
 import torch
 from kornia.geometry.transform import get_rotation_matrix2d, warp_affine
 
-from neuralbokeh.apertures import ApertureModel, Disk
-from neuralbokeh.cli import HelpFormatter
-from neuralbokeh.io import write_image
-from neuralbokeh.optics import ThinLens, focus_sweep_m
+from neuralbokeh.core.apertures import ApertureModel, Disk
+from neuralbokeh.core.cli import HelpFormatter
+from neuralbokeh.core.io import write_image
+from neuralbokeh.core.optics import ThinLens, focus_sweep_m
 from neuralbokeh.render import scatter_layers
 
 from ..procedural import SceneParams, composite_sharp, make_layers

@@ -16,11 +16,11 @@ import onnxruntime as ort
 import torch
 
 from .. import __version__
-from ..io import default_mode
-from ..lensnet import band_scales, reduce_kernel
-from ..model import NeuralBokeh
-from ..normalization import Normalization
-from ..training.checkpoint import load_model
+from ..core.io import default_mode
+from ..networks.lens import band_scales, reduce_kernel
+from ..networks.paper import NeuralBokeh
+from ..core.normalization import Normalization
+from ..checkpoint import load_model
 from .graph import build_graph
 from .lens_graph import LENS_DEFAULT_KERNELS, build_lens_graph, parse_lens_kernels
 from .lowrank import DEFAULT_KERNELS, cheaper_ranks, factorize, parse_kernels, reconstruct, relative_error

@@ -12,7 +12,7 @@ Graph inputs, all named:
 
 Output ``defocus`` ``(batch, 3, H, W)`` float32: normalised defocused RGB in (-1, 1).
 
-The layout mirrors ``neuralbokeh.model``: edge padding, one window per tile, C1 (1x1), residual
+The layout mirrors ``neuralbokeh.networks.paper``: edge padding, one window per tile, C1 (1x1), residual
 blocks of per-channel convolutions, concatenation with the window's RGB, C2 (1x1), tanh, the
 identity head, then the windows are zero-padded into place, summed and divided by the overlap
 count. Per-channel convolutions are written directly or, for a factorised convolution, as
@@ -32,7 +32,7 @@ import numpy as np
 import onnx
 from onnx import TensorProto, helper, numpy_helper
 
-_TANH_LIMIT = 1.0 - 1e-6  # the same scale as neuralbokeh.model's identity head
+_TANH_LIMIT = 1.0 - 1e-6  # the same scale as neuralbokeh.networks.paper's identity head
 
 
 class _Builder:

@@ -1,4 +1,4 @@
-"""The ONNX graph of the lens architecture (:mod:`neuralbokeh.lensnet`), from its kernels (onnx + numpy).
+"""The ONNX graph of the lens architecture (:mod:`neuralbokeh.networks.lens`), from its kernels (onnx + numpy).
 
 Named inputs ``aif``, ``coc``, ``tile_active`` (as the paper network's graph, ``graph.py``) and
 ``band_active`` ``(tiles, N, 2)`` bool; output ``defocus``. The learned pupils are rasterised
@@ -14,7 +14,7 @@ point-reflected), and the near / same-surface / far bucket weights at full resol
 
 *Coarser grids* (``scales``, the default export ``multires:10``): a band whose CoC is wide is
 convolved on a grid ``s`` = 2, 4 or 8 times coarser: box-averaged features (``AveragePool``),
-the kernel binned by :func:`~neuralbokeh.lensnet.reduce_kernel`, bilinear upsampling
+the kernel binned by :func:`~neuralbokeh.networks.lens.reduce_kernel`, bilinear upsampling
 (``Resize``, half-pixel). A convolution then costs ``1 / s^4`` of the direct one. What it costs
 in accuracy, stated in ``tests/test_lensnet.py``: flux kept, light moved by at most
 ``(s - 1) / 2`` px and widened by at most ``s^2`` px^2 of variance; the PSNR against the direct
@@ -38,14 +38,14 @@ import numpy as np
 import onnx
 from onnx import TensorProto, helper
 
-from ..render.holes import pyramid_levels
+from ..ops.holes import pyramid_levels
 from .graph import _Builder, finish_model
 
 _EPS = 1e-8
 # Bands whose CoC stays >= 10 coarse px wide on a 2, 4 or 8 times coarser grid are convolved there
 # (benchmarks/bench_runtime.py measures the speed and the error against the direct export).
 LENS_DEFAULT_KERNELS = "multires:10"
-HIDDEN_JUMP_PX = 4.0  # as neuralbokeh.render.holes.hidden_background's default
+HIDDEN_JUMP_PX = 4.0  # as neuralbokeh.ops.holes.hidden_background's default
 
 
 def parse_lens_kernels(spec: str) -> float:
@@ -95,7 +95,7 @@ def _branch(g: _Nodes, result: str, name: str) -> onnx.GraphProto:
 def _hidden_background(top: _Nodes, x: str, cfg: Mapping[str, Any]) -> str:
     """``(B, 3, H, W)`` linear estimate of what foregrounds hide, as ``LensBokeh.hidden``:
     occluders by a separable max over ``2R + 1`` px (``R`` = half the largest CoC), then the
-    pull-push fill of :func:`neuralbokeh.render.holes.push_pull_fill` on the zero-padded
+    pull-push fill of :func:`neuralbokeh.ops.holes.push_pull_fill` on the zero-padded
     ``2^L`` square (``AveragePool`` 2x2, ``Resize`` x2 half-pixel)."""
     h, w = int(cfg["image_height"]), int(cfg["image_width"])
     _, rgb = _linear_rgb(top, x, cfg)
@@ -143,7 +143,7 @@ def _band(b: _Builder, k: int, n: int, side: int, pos: str, side_mask: str, src_
           kernel: np.ndarray, scale: int, win: int, band_coc: float, margin: float, fp16: bool) -> onnx.GraphProto:
     """Then-branch: band ``n``'s 18-channel contribution (near, same, far) x (RGB, coverage),
     its convolution on a grid ``scale`` times coarser when ``scale > 1`` (``kernel`` is then
-    the binned one, :func:`~neuralbokeh.lensnet.reduce_kernel`)."""
+    the binned one, :func:`~neuralbokeh.networks.lens.reduce_kernel`)."""
     g = _Nodes(_Builder(b.count), f"t{k}.n{n}s{side}")
     one = g.c("one", 1.0)
     hat = g.op("Relu", g.op("Sub", one, g.op("Abs", g.op("Sub", pos, g.c(f"n{n}", float(n))))))

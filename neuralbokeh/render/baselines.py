@@ -25,9 +25,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..apertures import ApertureModel, Gaussian, pupil_grid
-from ..checks import check_finite, check_nonnegative, check_positive, check_shape
-from .fftconv import fft_convolve2d
+from ..core.apertures import ApertureModel, Gaussian, pupil_grid
+from ..core.checks import check_finite, check_nonnegative, check_positive, check_shape
+from ..ops.fftconv import fft_convolve2d
 from .scatter import scatter_defocus
 
 
@@ -86,7 +86,7 @@ def gather_defocus(aif: torch.Tensor, coc: torch.Tensor, aperture: ApertureModel
 
 
 def aperture_rays(aperture: ApertureModel, n: int) -> np.ndarray:
-    """Equal-weight rays through an ``n x n`` grid of the pupil (:func:`neuralbokeh.apertures.pupil_grid`)
+    """Equal-weight rays through an ``n x n`` grid of the pupil (:func:`neuralbokeh.core.apertures.pupil_grid`)
     where the shape transmits more than half, ``(N, 2)`` as (x right, y down)."""
     pts, t = pupil_grid(aperture.shape, n)
     pts = pts[t > 0.5] * np.array([1.0, -1.0])  # the shape's v is up, image rows go down

@@ -24,8 +24,8 @@ from __future__ import annotations
 
 import torch
 
-from ..apertures import ApertureModel
-from ..checks import check_positive
+from ..core.apertures import ApertureModel
+from ..core.checks import check_positive
 from .baselines import _check_inputs
 
 

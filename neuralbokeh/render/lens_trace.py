@@ -36,8 +36,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..apertures import ApertureModel
-from ..checks import check_at_least, check_finite, check_positive
+from ..core.apertures import ApertureModel
+from ..core.checks import check_at_least, check_finite, check_positive
 from .baselines import _check_inputs, aperture_rays
 
 _REFINE = 3  # narrowing passes of the min/max search

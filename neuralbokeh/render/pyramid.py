@@ -14,7 +14,7 @@ import math
 import torch
 import torch.nn.functional as F
 
-from ..checks import check_at_least, check_positive
+from ..core.checks import check_at_least, check_positive
 from .baselines import _check_inputs
 
 SIGMA_PER_COC = 0.25  # Gaussian sigma per px of CoC diameter

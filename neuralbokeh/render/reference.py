@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..apertures import ApertureModel, field_position
+from ..core.apertures import ApertureModel, field_position
 
 
 def _mirror(i: int, n: int, p: int) -> int:

@@ -30,7 +30,7 @@ What it approximates for an all-in-focus image plus a depth map (:func:`render_d
 * What a foreground hides in the all-in-focus image is unknown. Its hole in the layers behind
   leaves the accumulated coverage below 1 where a blurred foreground edge becomes partly
   transparent. ``fill="background"`` (default) fills that shortfall with the visible
-  background around the occluder (:func:`neuralbokeh.render.holes.hidden_background`), which
+  background around the occluder (:func:`neuralbokeh.ops.holes.hidden_background`), which
   is what a lens sees through a blurred edge; ``fill="normalize"`` divides by the coverage
   (the foreground's own colours fill the hole, so it looks opaque); ``"none"`` leaves it dark.
 * ``coc_step`` 0.5, ``jump_px`` 4 and the two defaults above were chosen on Mitsuba renders of a
@@ -72,11 +72,11 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..apertures import ApertureModel, field_position
-from ..checks import check_finite, check_in_range, check_nonnegative, check_positive, check_shape
-from ..optics import ThinLens
-from .fftconv import fft_convolve2d
-from .holes import hidden_background
+from ..core.apertures import ApertureModel, field_position
+from ..core.checks import check_finite, check_in_range, check_nonnegative, check_positive, check_shape
+from ..core.optics import ThinLens
+from ..ops.fftconv import fft_convolve2d
+from ..ops.holes import hidden_background
 
 log = logging.getLogger(__name__)
 
@@ -372,7 +372,7 @@ def scatter_defocus(
         field_grid: image-position grid for cat-eye kernels (default automatic).
         fill: what fills the coverage the slices leave short (where a blurred foreground is
             partly transparent onto what it hides): ``"background"`` (default: the visible
-            background around the occluder, :func:`neuralbokeh.render.holes.hidden_background`),
+            background around the occluder, :func:`neuralbokeh.ops.holes.hidden_background`),
             ``"normalize"`` (divide by the coverage: the foreground's own colours) or ``"none"``.
         chunk: convolutions per FFT batch.
         preserve_uniform: see :func:`scatter_layers`.

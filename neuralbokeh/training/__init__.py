@@ -3,7 +3,7 @@
 The CLI ``train.py`` is a thin layer over :func:`neuralbokeh.training.loop.train`.
 """
 
-from .checkpoint import load_checkpoint, load_model, save_checkpoint
+from ..checkpoint import load_checkpoint, load_model, save_checkpoint
 from .config import TrainConfig, load_config
 from .loop import train
 

@@ -16,7 +16,7 @@ from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
-from ..model import ARCHITECTURES, FILLS, HEADS, KERNELS, PUPIL_INITS, TILINGS
+from ..networks.config import ARCHITECTURES, FILLS, HEADS, KERNELS, PUPIL_INITS, TILINGS
 
 
 @dataclass
@@ -27,7 +27,7 @@ class DataConfig:
         roots: dataset folders (relative paths are relative to the working directory).
         test_fraction: share of scenes held out for evaluation, in [0, 1).
         split_seed: seed of the scene-level split.
-        normalization_scale: linear value mapped to 0 by :class:`neuralbokeh.data.Normalization`.
+        normalization_scale: linear value mapped to 0 by :class:`neuralbokeh.core.normalization.Normalization`.
         cache: keep loaded samples in memory (small datasets).
     """
 
@@ -40,7 +40,7 @@ class DataConfig:
 
 @dataclass
 class ModelSection:
-    """Network hyper-parameters (see :class:`neuralbokeh.model.ModelConfig`); the image size, the
+    """Network hyper-parameters (see :class:`neuralbokeh.networks.ModelConfig`); the image size, the
     CoC scale, the normalisation and the aperture come from the data. ``blocks = "auto"`` takes N
     from the data's largest CoC."""
 

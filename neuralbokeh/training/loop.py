@@ -37,13 +37,14 @@ from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data.distributed import DistributedSampler
 from tqdm import tqdm
 
-from ..apertures import ApertureModel, Gaussian
-from ..data import FocalStackDataset, Normalization
-from ..dataset_check import require_sound
-from ..model import ModelConfig, NeuralBokeh, build_model
-from ..optics import blocks_for_coc
+from ..core.apertures import ApertureModel, Gaussian
+from ..data.dataset import FocalStackDataset, Normalization
+from ..data.check import require_sound
+from ..networks import ModelConfig, build_model
+from ..networks.paper import NeuralBokeh
+from ..core.optics import blocks_for_coc
 from ..render import scatter_defocus
-from .checkpoint import load_checkpoint, save_checkpoint
+from ..checkpoint import load_checkpoint, save_checkpoint
 from .config import TrainConfig
 
 log = logging.getLogger(__name__)
@@ -212,7 +213,7 @@ def _train(
 ) -> dict[str, Any]:
     """Train from a config; returns a summary (final metrics, checkpoint path, skipped steps).
 
-    The dataset is checked whole first (:func:`~neuralbokeh.dataset_check.require_sound`). A run
+    The dataset is checked whole first (:func:`~neuralbokeh.data.check.require_sound`). A run
     that dies (an exception, Ctrl-C, too many non-finite steps) writes a checkpoint of its last
     completed step before the error propagates, so ``resume`` continues from there.
 

@@ -1,6 +1,6 @@
 """Overlapping tiles: cutting an image into windows concatenated along channels and back.
 
-Shared by both networks (:mod:`neuralbokeh.model`, :mod:`neuralbokeh.lensnet`). A layout is
+Shared by both networks (:mod:`neuralbokeh.networks.paper`, :mod:`neuralbokeh.networks.lens`). A layout is
 ``(rows, cols, core, overlap)``: cores of ``core`` px on a grid, each window extended by
 ``overlap`` px on every side.
 """

@@ -1,13 +1,13 @@
 """The paper's design validation (Table 1): five variants, one dataset, one budget.
 
-    python -m neuralbokeh.training.ablations configs/quickstart.toml --data DIR --minutes 10 --out runs/ablations
+    python -m neuralbokeh.evaluation.ablations configs/quickstart.toml --data DIR --minutes 10 --out runs/ablations
 
 Trains ``full`` (the default architecture), ``paper`` (the paper's network as written, at its
 own learning rate), ``fixed3_kernels`` (3x3 kernels), ``no_tiling``,
 ``no_overlap`` (tiling without overlap) and ``tile_loss`` (loss per tile) from the same config,
 each for the same wall time (``--minutes``; or a fixed ``train.steps=N`` override with
 ``--minutes 0``), then evaluates every checkpoint on the held-out split with
-``neuralbokeh.evaluate`` and writes ``table.md`` / ``table.json`` in the form of Table 1 (PSNR,
+``neuralbokeh.evaluation.evaluate`` and writes ``table.md`` / ``table.json`` in the form of Table 1 (PSNR,
 SSIM and, in place of LPIPS whose weights are not available here, HDR-FLIP; tone-mapped sRGB).
 """
 
@@ -19,11 +19,11 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from ..data import FocalStackDataset
-from ..evaluate import evaluate, model_method
-from ..io import write_json
-from .config import load_config
-from .loop import train
+from ..data.dataset import FocalStackDataset
+from .evaluate import evaluate, model_method
+from ..core.io import write_json
+from ..training.config import load_config
+from ..training.loop import train
 
 log = logging.getLogger(__name__)
 
@@ -70,7 +70,7 @@ def run_ablations(config: Path, data: Path, out: Path, minutes: float, overrides
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m neuralbokeh.training.ablations", description=__doc__,
+    p = argparse.ArgumentParser(prog="python -m neuralbokeh.evaluation.ablations", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("config", type=Path, help="base config, e.g. configs/quickstart.toml")
     p.add_argument("overrides", nargs="*", help="section.key=value applied to every variant")

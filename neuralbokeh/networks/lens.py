@@ -1,13 +1,13 @@
 """The default network: the paper's tiled skeleton carrying a learned lens (pure definitions).
 
-Same interface as :class:`neuralbokeh.model.NeuralBokeh` (the paper's network, kept as the
+Same interface as :class:`neuralbokeh.networks.paper.NeuralBokeh` (the paper's network, kept as the
 ``architecture = "paper"`` ablation): input ``(B, 4, H, W)`` = normalised all-in-focus RGB in
 [-1, 1) and the CoC divided by ``coc_scale_px``; output ``(B, 3, H, W)`` normalised RGB.
 
 The skeleton of the paper, given what a lens blur is made of:
 
 1. *Linear light.* The input RGB is decoded to linear HDR (the exact inverse of
-   :class:`~neuralbokeh.normalization.Normalization`); the output is encoded back, which is the
+   :class:`~neuralbokeh.core.normalization.Normalization`); the output is encoded back, which is the
    head's tanh (the normalisation *is* ``tanh(ln((x + o) / s) / 2)``). A blur is linear in
    linear light: a 1000x highlight spread over a disk stays bright.
 2. *Tiles with their own weights.* The image is cut into ``tile`` px cores with ``overlap`` px
@@ -63,11 +63,11 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from .apertures import Aperture, Disk, Gaussian, aperture_from_dict
-from .checks import check_finite
-from .render.fftconv import next_fast_len
-from .render.holes import hidden_background
-from .tiling import tile
+from ..core.apertures import Aperture, Disk, Gaussian, aperture_from_dict
+from ..core.checks import check_finite
+from ..ops.fftconv import next_fast_len
+from ..ops.holes import hidden_background
+from ..ops.tiles import tile
 
 log = logging.getLogger(__name__)
 
@@ -193,7 +193,7 @@ def _scatter(feats: torch.Tensor, kern: torch.Tensor, which: torch.Tensor, s: in
 
 
 class LensBokeh(nn.Module):
-    """The default network (see the module doc). Built from a :class:`~neuralbokeh.model.ModelConfig`."""
+    """The default network (see the module doc). Built from a :class:`~neuralbokeh.networks.ModelConfig`."""
 
     def __init__(self, config: Any) -> None:
         super().__init__()
@@ -337,7 +337,7 @@ class LensBokeh(nn.Module):
 
     def hidden(self, x: torch.Tensor) -> torch.Tensor:
         """Linear ``(B, 3, H, W)`` estimate of what foregrounds hide in the input ``(B, 4, H, W)``
-        (:func:`neuralbokeh.render.holes.hidden_background`, occluders looked for within half the
+        (:func:`neuralbokeh.ops.holes.hidden_background`, occluders looked for within half the
         largest CoC the network is built for)."""
         cfg = self.config
         return hidden_background(self._decode(x[:, :3]), x[:, 3:] * cfg.coc_scale_px,

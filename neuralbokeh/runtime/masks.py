@@ -12,7 +12,7 @@ import math
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
-from .checks import check_at_least
+from ..core.checks import check_at_least
 
 
 def erode(mask: np.ndarray, radius_px: int) -> np.ndarray:

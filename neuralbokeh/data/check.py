@@ -5,21 +5,25 @@ checked against ``scene.json``: the image size and channels, finite values, colo
 > 0 m (``+inf`` allowed), the CoC finite and equal to what the scene's lens gives for its depth
 and the slice's focus distance (``ThinLens.coc_px``, within ``coc_tolerance``), and the
 recorded largest |CoC|. Problems are collected, not raised one by one, so a user sees every bad
-file at once. ``train`` and ``neuralbokeh.evaluate`` run it before they start.
+file at once. ``train`` and ``neuralbokeh.evaluation.evaluate`` run it before they start.
 """
 
 from __future__ import annotations
 
+import argparse
 import logging
 import os
+import sys
+import time
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
-from .data import find_scenes, read_scene_meta
-from .io import read_image
-from .optics import ThinLens
+from ..core.cli import HelpFormatter
+from ..core.io import read_image
+from ..core.optics import ThinLens
+from .dataset import find_scenes, read_scene_meta
 
 log = logging.getLogger(__name__)
 
@@ -131,3 +135,22 @@ def require_sound(roots: str | os.PathLike | Sequence[str | os.PathLike], progre
         shown = "; ".join(problems[:20]) + (f"; ... and {len(problems) - 20} more" if len(problems) > 20 else "")
         raise ValueError(f"dataset check failed ({len(problems)} problem(s); run `python -m neuralbokeh.data check` "
                          f"for the list): {shown}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m neuralbokeh.data check ROOT [ROOT ...]``: validate datasets (:func:`check_dataset`)."""
+    p = argparse.ArgumentParser(prog="python -m neuralbokeh.data", description=main.__doc__, formatter_class=HelpFormatter)
+    sub = p.add_subparsers(dest="command", required=True)
+    check = sub.add_parser("check", help="read every file of every scene and check it against scene.json",
+                           formatter_class=HelpFormatter)
+    check.add_argument("roots", nargs="+", help="dataset folders (each holding scene folders)")
+    check.add_argument("-v", "--verbose", action="store_true", help="tracebacks with errors")
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stdout)  # the report is the CLI's output
+    t = time.perf_counter()
+    problems = check_dataset(args.roots, progress=sys.stderr.isatty())
+    for line in problems:
+        log.info("%s", line)
+    log.info("%d scene(s) checked in %.1f s: %s", len(find_scenes(args.roots)), time.perf_counter() - t,
+             f"{len(problems)} problem(s)" if problems else "no problems")
+    return 1 if problems else 0

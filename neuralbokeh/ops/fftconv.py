@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import torch
 
-from ..checks import check_shape
+from ..core.checks import check_shape
 
 
 def next_fast_len(n: int) -> int:

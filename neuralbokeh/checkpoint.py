@@ -15,8 +15,9 @@ from typing import Any
 
 import torch
 
-from .. import __version__
-from ..model import ModelConfig, NeuralBokeh, build_model
+from . import __version__
+from .networks import ModelConfig, build_model
+from .networks.paper import NeuralBokeh
 
 FORMAT = "neuralbokeh-checkpoint"
 FORMAT_VERSION = 1

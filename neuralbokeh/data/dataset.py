@@ -27,11 +27,11 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
-from .apertures import ApertureModel
-from .checks import check_finite, check_nonnegative, check_positive, check_shape
-from .io import default_mode, read_image, read_json, write_image, write_json
-from .normalization import Normalization
-from .optics import ThinLens
+from ..core.apertures import ApertureModel
+from ..core.checks import check_finite, check_nonnegative, check_positive, check_shape
+from ..core.io import default_mode, read_image, read_json, write_image, write_json
+from ..core.normalization import Normalization
+from ..core.optics import ThinLens
 
 log = logging.getLogger(__name__)
 
@@ -308,35 +308,3 @@ class FocalStackDataset(torch.utils.data.Dataset):
             "slice": k,
             "focus_m": float(sl["focus_m"]),
         }
-
-
-def main(argv: list[str] | None = None) -> int:
-    """``python -m neuralbokeh.data check ROOT [ROOT ...]``: validate datasets (see ``dataset_check``)."""
-    import argparse
-    import sys
-    import time
-
-    from .cli import HelpFormatter
-    from .dataset_check import check_dataset
-
-    p = argparse.ArgumentParser(prog="python -m neuralbokeh.data", description=main.__doc__, formatter_class=HelpFormatter)
-    sub = p.add_subparsers(dest="command", required=True)
-    check = sub.add_parser("check", help="read every file of every scene and check it against scene.json",
-                           formatter_class=HelpFormatter)
-    check.add_argument("roots", nargs="+", help="dataset folders (each holding scene folders)")
-    check.add_argument("-v", "--verbose", action="store_true", help="tracebacks with errors")
-    args = p.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stdout)  # the report is the CLI's output
-    t = time.perf_counter()
-    problems = check_dataset(args.roots, progress=sys.stderr.isatty())
-    for line in problems:
-        log.info("%s", line)
-    log.info("%d scene(s) checked in %.1f s: %s", len(find_scenes(args.roots)), time.perf_counter() - t,
-             f"{len(problems)} problem(s)" if problems else "no problems")
-    return 1 if problems else 0
-
-
-if __name__ == "__main__":
-    from .cli import run_cli
-
-    raise SystemExit(run_cli(main))

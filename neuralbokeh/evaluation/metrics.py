@@ -17,7 +17,7 @@ import numpy as np
 import torch
 from kornia.metrics import psnr, ssim
 
-from .checks import check_nonnegative
+from ..core.checks import check_nonnegative
 
 
 def _t(img: np.ndarray) -> torch.Tensor:

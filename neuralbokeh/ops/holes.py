@@ -22,7 +22,7 @@ import math
 import torch
 import torch.nn.functional as F
 
-from ..checks import check_nonnegative, check_positive, check_shape
+from ..core.checks import check_nonnegative, check_positive, check_shape
 
 
 def occluders(coc: torch.Tensor, radius_px: int, jump_px: float = 4.0) -> torch.Tensor:

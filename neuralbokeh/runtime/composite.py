@@ -1,6 +1,6 @@
 """Composite a rendered CG layer over a photograph with the learned lens blur (paper section 3.4).
 
-    python -m neuralbokeh.composite --model lens.onnx --plate photo.exr --render cg.exr \\
+    python -m neuralbokeh.runtime.composite --model lens.onnx --plate photo.exr --render cg.exr \\
         --depth cg_depth.exr --alpha cg_alpha.exr --focus 2.5 --out comp.exr
 
 The all-in-focus render (pinhole camera with the real camera's intrinsics) is defocused by the
@@ -32,10 +32,10 @@ import numpy as np
 import OpenImageIO as oiio
 from tqdm import tqdm
 
-from .cli import HelpFormatter, run_cli
-from .io import read_image, write_image
+from ..core.cli import HelpFormatter, run_cli
+from ..core.io import read_image, write_image
 from .masks import erode, gaussian_blur
-from .runtime import BokehModel
+from .onnx_model import BokehModel
 
 log = logging.getLogger(__name__)
 _PATTERN = re.compile(r"%0?\d*d")
@@ -143,7 +143,7 @@ def composite_frame(model: BokehModel, plate: np.ndarray, render: np.ndarray, de
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m neuralbokeh.composite", description=__doc__,
+    p = argparse.ArgumentParser(prog="python -m neuralbokeh.runtime.composite", description=__doc__,
                                 formatter_class=HelpFormatter)
     p.add_argument("--model", required=True, help="ONNX model written by export.py")
     p.add_argument("--plate", required=True, help="the photograph (background), linear RGB")

@@ -31,9 +31,9 @@ from typing import Any
 import numpy as np
 import onnxruntime as ort
 
-from .checks import check_at_least, check_finite, format_location
-from .normalization import Normalization
-from .optics import ThinLens
+from ..core.checks import check_at_least, check_finite, format_location
+from ..core.normalization import Normalization
+from ..core.optics import ThinLens
 
 log = logging.getLogger(__name__)
 

@@ -1,6 +1,6 @@
 """Error against run time for every method on a held-out set.
 
-    python -m neuralbokeh.evaluate --data DIR --models a.onnx b.pt --baselines all --out report/
+    python -m neuralbokeh.evaluation --data DIR --models a.onnx b.pt --baselines all --out report/
 
 Methods: trained models (``.onnx`` through ``neuralbokeh.runtime``, ``.pt`` checkpoints through
 PyTorch) and the baselines of ``neuralbokeh.render.baselines``: ``identity`` (the AIF returned),
@@ -14,7 +14,7 @@ CoC as every other method: the data's lens without learning. It is not a bound: 
 foregrounds hide in the AIF, and on data rendered layer by layer, identity or a learned model can
 beat it on some metrics).
 
-Per method and held-out sample: the metrics of ``neuralbokeh.metrics`` (PSNR/SSIM in linear
+Per method and held-out sample: the metrics of ``neuralbokeh.evaluation.metrics`` (PSNR/SSIM in linear
 light and tone-mapped sRGB, HDR-FLIP) and the wall time per megapixel, the median of
 ``--repeats`` runs in this process with ``--threads`` threads. Writes ``report.json``,
 ``report.md``, ``error_vs_runtime.png`` (log time axis, Pareto front marked) and image grids
@@ -38,18 +38,18 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from .apertures import ApertureModel
-from .cli import HelpFormatter, run_cli
-from .data import FocalStackDataset
-from .dataset_check import require_sound
-from .io import write_image, write_json
+from ..core.apertures import ApertureModel
+from ..core.cli import HelpFormatter
+from ..data.dataset import FocalStackDataset
+from ..data.check import require_sound
+from ..core.io import write_json
 from .metrics import image_metrics, pareto_front, tonemap_srgb
-from .normalization import Normalization
-from .render import scatter_defocus
-from .render.baselines import gather_defocus, gaussian_defocus, pseudo_ray_trace
-from .render.buckets import bucket_gather
-from .render.lens_trace import lens_ray_trace
-from .render.pyramid import pyramid_spread, tensor_filter
+from ..core.normalization import Normalization
+from ..render import scatter_defocus
+from ..render.baselines import gather_defocus, gaussian_defocus, pseudo_ray_trace
+from ..render.buckets import bucket_gather
+from ..render.lens_trace import lens_ray_trace
+from ..render.pyramid import pyramid_spread, tensor_filter
 
 log = logging.getLogger(__name__)
 BASELINES = ("identity", "gaussian", "gather", "raytrace", "buckets", "pyramid", "tensor", "lenstrace", "scatter")
@@ -101,11 +101,11 @@ def load_model_method(path: Path, threads: int) -> LoadedModel:
     """A trained model: ``.onnx`` (onnxruntime, in-focus tiles and unused bands skipped; its
     metadata read once by the runtime) or a ``.pt`` checkpoint (read once)."""
     if path.suffix == ".onnx":
-        from .runtime import BokehModel
+        from ..runtime.onnx_model import BokehModel
 
         m = BokehModel(path, threads=threads)
         return LoadedModel(lambda aif, coc: m.render_coc(aif, coc), (m.height, m.width), m.meta.get("data_split"))
-    from .training.checkpoint import load_model
+    from ..checkpoint import load_model
 
     model, ckpt = load_model(path)
     cfg = model.config
@@ -274,7 +274,7 @@ def _grid(plt: Any, out: Path, label: str, ref: str, it: dict, names: list[str],
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m neuralbokeh.evaluate", description=__doc__,
+    p = argparse.ArgumentParser(prog="python -m neuralbokeh.evaluation", description=__doc__,
                                 formatter_class=HelpFormatter)
     p.add_argument("--data", type=Path, required=True, help="dataset folder (checked whole before anything runs)")
     p.add_argument("--models", type=Path, nargs="*", default=[], help=".onnx files or .pt checkpoints")
@@ -326,6 +326,3 @@ def main(argv: list[str] | None = None) -> int:
     log.info("%s", (args.out / "report.md").read_text())
     return 0
 
-
-if __name__ == "__main__":
-    sys.exit(run_cli(main))
