@@ -32,6 +32,8 @@ import numpy as np
 import onnx
 from onnx import TensorProto, helper, numpy_helper
 
+from ..core.tiling import TileLayout
+
 _TANH_LIMIT = 1.0 - 1e-6  # the same scale as neuralbokeh.networks.paper's identity head
 
 
@@ -166,7 +168,7 @@ def finish_model(nodes: list, initializers: list, name: str, size: tuple[int, in
     return model
 
 
-def build_graph(weights: Mapping[str, np.ndarray], cfg: Mapping[str, Any], layout: tuple[int, int, int, int],
+def build_graph(weights: Mapping[str, np.ndarray], cfg: Mapping[str, Any], layout: TileLayout,
                 factors: Mapping[str, tuple[np.ndarray, np.ndarray]] | None = None, fp16: bool = False,
                 opset: int = 17, metadata: Mapping[str, str] | None = None) -> onnx.ModelProto:
     """The full-image ONNX model.
@@ -174,7 +176,7 @@ def build_graph(weights: Mapping[str, np.ndarray], cfg: Mapping[str, Any], layou
     Args:
         weights: the network's state dict as float numpy arrays (``NeuralBokeh.state_dict()``).
         cfg: its ``ModelConfig.to_dict()``.
-        layout: ``ModelConfig.layout`` ``(rows, cols, tile, overlap)``.
+        layout: ``ModelConfig.layout``.
         factors: ``{"blocks.n.conv_a": (cols, rows)}`` separable factors ``(C, R, k)`` of the
             convolutions to factorise (all channels of all tiles); the others run direct.
         fp16: float16 trunk (see the module doc).
@@ -184,38 +186,36 @@ def build_graph(weights: Mapping[str, np.ndarray], cfg: Mapping[str, Any], layou
     if opset < 17:
         raise ValueError(f"opset must be >= 17, got {opset}")
     factors = factors or {}
-    rows, cols, t, t_o = layout
     h, w = cfg["image_height"], cfg["image_width"]
-    hp, wp, win = rows * t + 2 * t_o, cols * t + 2 * t_o, t + 2 * t_o
+    (hp, wp), win, t_o = layout.padded_size, layout.window, layout.overlap
     b = _Builder()
     nodes = [helper.make_node("Concat", ["aif", "coc"], ["x"], axis=1, name="concat_input")]
-    pads = [0, 0, t_o, t_o, 0, 0, hp - t_o - h, wp - t_o - w]
+    top, bottom, left, right = layout.pads(h, w)
+    pads = [0, 0, top, left, 0, 0, bottom, right]
     nodes.append(helper.make_node("Pad", ["x", b.const("pads", pads, np.int64)], ["padded"], mode="edge", name="pad"))
     count = np.zeros((1, 1, hp, wp), np.float32)
     placed = []
-    for i in range(rows):
-        for j in range(cols):
-            k = i * cols + j
-            window, rgb, cond, out = f"t{k}.window", f"t{k}.rgb", f"t{k}.active", f"t{k}.out"
-            nodes.append(helper.make_node("Slice", ["padded", b.const(f"t{k}.starts", [i * t, j * t], np.int64),
-                                                    b.const(f"t{k}.ends", [i * t + win, j * t + win], np.int64),
-                                                    b.const("axes_hw", [2, 3], np.int64)], [window], name=window))
-            nodes.append(helper.make_node("Split", [window, b.const("split_rgb_coc", [3, 1], np.int64)],
-                                          [rgb, f"t{k}.coc"], axis=1, name=rgb))
-            nodes.append(helper.make_node("Gather", ["tile_active", b.const(f"t{k}.index", k, np.int64)], [cond], name=cond))
-            then_graph = _tile_network(b, k, window, rgb, weights, cfg, factors, fp16)
-            skip = f"t{k}.skip_out"
-            else_graph = helper.make_graph([helper.make_node("Identity", [rgb], [skip], name=skip)], f"t{k}_skip", [],
-                                           [helper.make_tensor_value_info(skip, TensorProto.FLOAT, None)])
-            nodes.append(helper.make_node("If", [cond], [out], then_branch=then_graph, else_branch=else_graph, name=out))
-            canvas = f"t{k}.placed"
-            place = [0, 0, i * t, j * t, 0, 0, hp - i * t - win, wp - j * t - win]
-            nodes.append(helper.make_node("Pad", [out, b.const(f"t{k}.place", place, np.int64)], [canvas], name=canvas))
-            placed.append(canvas)
-            count[..., i * t : i * t + win, j * t : j * t + win] += 1.0
+    for k, r, c in layout.origins():
+        window, rgb, cond, out = f"t{k}.window", f"t{k}.rgb", f"t{k}.active", f"t{k}.out"
+        nodes.append(helper.make_node("Slice", ["padded", b.const(f"t{k}.starts", [r, c], np.int64),
+                                                b.const(f"t{k}.ends", [r + win, c + win], np.int64),
+                                                b.const("axes_hw", [2, 3], np.int64)], [window], name=window))
+        nodes.append(helper.make_node("Split", [window, b.const("split_rgb_coc", [3, 1], np.int64)],
+                                      [rgb, f"t{k}.coc"], axis=1, name=rgb))
+        nodes.append(helper.make_node("Gather", ["tile_active", b.const(f"t{k}.index", k, np.int64)], [cond], name=cond))
+        then_graph = _tile_network(b, k, window, rgb, weights, cfg, factors, fp16)
+        skip = f"t{k}.skip_out"
+        else_graph = helper.make_graph([helper.make_node("Identity", [rgb], [skip], name=skip)], f"t{k}_skip", [],
+                                       [helper.make_tensor_value_info(skip, TensorProto.FLOAT, None)])
+        nodes.append(helper.make_node("If", [cond], [out], then_branch=then_graph, else_branch=else_graph, name=out))
+        canvas = f"t{k}.placed"
+        place = [0, 0, r, c, 0, 0, hp - r - win, wp - c - win]
+        nodes.append(helper.make_node("Pad", [out, b.const(f"t{k}.place", place, np.int64)], [canvas], name=canvas))
+        placed.append(canvas)
+        count[..., r : r + win, c : c + win] += 1.0
     nodes.append(helper.make_node("Sum", placed, ["total"], name="sum_tiles"))
     nodes.append(helper.make_node("Mul", ["total", b.const("inv_count", 1.0 / count)], ["averaged"], name="average"))
     nodes.append(helper.make_node("Slice", ["averaged", b.const("crop_start", [t_o, t_o], np.int64),
                                             b.const("crop_end", [t_o + h, t_o + w], np.int64), "axes_hw"],
                                   ["defocus"], name="crop"))
-    return finish_model(nodes, b.initializers, "neuralbokeh", (h, w), rows * cols, opset, metadata)
+    return finish_model(nodes, b.initializers, "neuralbokeh", (h, w), layout.num_tiles, opset, metadata)

@@ -38,6 +38,7 @@ import numpy as np
 import onnx
 from onnx import TensorProto, helper
 
+from ..core.tiling import TileLayout
 from ..ops.holes import pyramid_levels
 from .graph import _Builder, finish_model
 
@@ -232,7 +233,7 @@ def _passthrough(b: _Builder, k: int, window: str, src: np.ndarray, cfg: Mapping
 
 
 def build_lens_graph(kernels: Mapping[int, np.ndarray], source_masks: np.ndarray, diameters: np.ndarray,
-                     cfg: Mapping[str, Any], layout: tuple[int, int, int, int], fp16: bool = False, opset: int = 18,
+                     cfg: Mapping[str, Any], layout: TileLayout, fp16: bool = False, opset: int = 18,
                      metadata: Mapping[str, str] | None = None, scales: Mapping[int, int] | None = None) -> onnx.ModelProto:
     """The full-image ONNX model of a ``LensBokeh``.
 
@@ -249,27 +250,25 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], source_masks: np.ndarray
     if opset < 18:
         raise ValueError(f"the lens graph needs opset >= 18 (Col2Im), got {opset}")
     scales = dict(scales or {})
-    rows, cols, t, t_o = layout
     h, w = cfg["image_height"], cfg["image_width"]
-    hp, wp, win = rows * t + 2 * t_o, cols * t + 2 * t_o, t + 2 * t_o
-    n_t = rows * cols
+    (hp, wp), win, t, t_o = layout.padded_size, layout.window, layout.core, layout.overlap
+    n_t = layout.num_tiles
     b = _Builder()
     top = _Nodes(b, "g")
     x = top.op("Concat", "aif", "coc", axis=1)
-    padded = top.op("Pad", x, b.const("pads", [0, 0, t_o, t_o, 0, 0, hp - t_o - h, wp - t_o - w], np.int64), mode="edge")
+    pad_t, pad_b, pad_l, pad_r = layout.pads(h, w)
+    padded = top.op("Pad", x, b.const("pads", [0, 0, pad_t, pad_l, 0, 0, pad_b, pad_r], np.int64), mode="edge")
     placed = []
-    for i in range(rows):
-        for j in range(cols):
-            k = i * cols + j
-            window = top.op("Slice", padded, b.const(f"t{k}.starts", [i * t, j * t], np.int64),
-                            b.const(f"t{k}.ends", [i * t + win, j * t + win], np.int64), b.const("axes_hw", [2, 3], np.int64))
-            cond = top.op("Gather", "tile_active", b.const(f"t{k}.index", k, np.int64))
-            tile_kernels = {n: kernels[n][k] for n in kernels}
-            then = _tile(b, k, window, tile_kernels, scales, source_masks[k], cfg, diameters, fp16)
-            b.count += 10_000  # branch-local names stay unique across branches
-            other = _passthrough(b, k, window, source_masks[k], cfg)
-            b.count += 10_000
-            placed.append(top.op("If", cond, then_branch=then, else_branch=other))  # (1, B, 18, win, win)
+    for k, r, c in layout.origins():
+        window = top.op("Slice", padded, b.const(f"t{k}.starts", [r, c], np.int64),
+                        b.const(f"t{k}.ends", [r + win, c + win], np.int64), b.const("axes_hw", [2, 3], np.int64))
+        cond = top.op("Gather", "tile_active", b.const(f"t{k}.index", k, np.int64))
+        tile_kernels = {n: kernels[n][k] for n in kernels}
+        then = _tile(b, k, window, tile_kernels, scales, source_masks[k], cfg, diameters, fp16)
+        b.count += 10_000  # branch-local names stay unique across branches
+        other = _passthrough(b, k, window, source_masks[k], cfg)
+        b.count += 10_000
+        placed.append(top.op("If", cond, then_branch=then, else_branch=other))  # (1, B, 18, win, win)
     # overlap-add of the windows in one pass: (T, B, 18, win, win) -> (B, 18 win^2, T) -> Col2Im
     stacked = top.op("Concat", *placed, axis=0) if len(placed) > 1 else placed[0]
     cols_ = top.op("Reshape", top.op("Transpose", stacked, perm=[1, 2, 3, 4, 0]), b.const("cols_shape", [0, 18 * win * win, n_t], np.int64))

@@ -10,6 +10,8 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass, fields
 
+from ..core.tiling import TileLayout
+
 ARCHITECTURES = ("lens", "paper")
 PUPIL_INITS = ("disk", "gaussian", "aperture")
 FILLS = ("background", "normalize")
@@ -101,18 +103,13 @@ class ModelConfig:
                 raise ValueError(f"{name} must be one of {allowed}, got {getattr(self, name)!r}")
 
     @property
-    def layout(self) -> tuple[int, int, int, int]:
-        """``(rows, cols, core, overlap)`` of the tile grid actually used."""
-        if self.tiling == "none":
-            return 1, 1, max(self.image_height, self.image_width), 0
-        t = self.tile
-        t_o = 0 if self.tiling == "no_overlap" else self.overlap
-        return math.ceil(self.image_height / t), math.ceil(self.image_width / t), t, t_o
+    def layout(self) -> TileLayout:
+        """The tile grid actually used (``tiling = "none"``: one tile; ``"no_overlap"``: no context)."""
+        return TileLayout.for_image(self.image_height, self.image_width, self.tile, self.overlap, self.tiling)
 
     @property
     def num_tiles(self) -> int:
-        rows, cols, _, _ = self.layout
-        return rows * cols
+        return self.layout.num_tiles
 
     def kernel_size(self, n: int) -> int:
         """Kernel size of residual block n (1-based)."""

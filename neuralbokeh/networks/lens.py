@@ -211,25 +211,13 @@ class LensBokeh(nn.Module):
         self.pupil_shared = nn.Parameter(torch.from_numpy(init).float())
         self.pupil_tile = nn.Parameter(torch.zeros(cfg.num_tiles, 2, 3, cfg.pupil_size, cfg.pupil_size))
         self.log_channel_scale = nn.Parameter(torch.zeros(3))
-        rows, cols, t, t_o = cfg.layout
+        layout = cfg.layout
         reach = math.ceil(0.5 * self.c_max * 1.1)  # the largest CoC radius, with room for a learned channel scale
-        if rows * cols > 1 and t_o < reach:
+        if layout.num_tiles > 1 and layout.overlap < reach:
             log.warning("tile overlap %d px is below the largest CoC radius (~%d px): light that a tile's blur would "
-                        "carry beyond its window is lost (raise model.overlap)", t_o, reach)
-        self.register_buffer("source_mask", self._source_masks(rows, cols, t, t_o), persistent=False)
-
-    @staticmethod
-    def _source_masks(rows: int, cols: int, t: int, t_o: int) -> torch.Tensor:
-        """``(tiles, 1, win, win)``: 1 on the pixels whose light a tile scatters (its core, out
-        to the window's edge on image-border sides)."""
-        win = t + 2 * t_o
-        masks = torch.zeros(rows * cols, 1, win, win)
-        for i in range(rows):
-            for j in range(cols):
-                r0, r1 = (0 if i == 0 else t_o), (win if i == rows - 1 else t_o + t)
-                c0, c1 = (0 if j == 0 else t_o), (win if j == cols - 1 else t_o + t)
-                masks[i * cols + j, 0, r0:r1, c0:c1] = 1.0
-        return masks
+                        "carry beyond its window is lost (raise model.overlap)", layout.overlap, reach)
+        # (tiles, 1, win, win): 1 on the pixels whose light a tile scatters
+        self.register_buffer("source_mask", torch.from_numpy(layout.source_masks())[:, None], persistent=False)
 
     # -- kernels ---------------------------------------------------------------------------
     def kernel_size(self, n: int) -> int:
@@ -373,12 +361,11 @@ class LensBokeh(nn.Module):
             bg = None if background is None else tile(background, cfg.layout).view(b * n_t, 3, win, win)
             out = self.composite(acc.view(b * n_t, 3, 6, win, win), bg)
             return self._encode(out.clamp_min(0.0)).view(b, n_t * 3, win, win)
-        rows, cols, t, t_o = cfg.layout
-        hp, wp = rows * t + 2 * t_o, cols * t + 2 * t_o
-        canvas = acc.new_zeros(b, 18, hp, wp)
-        for i in range(rows):
-            for j in range(cols):
-                canvas[:, :, i * t : i * t + win, j * t : j * t + win] += acc[:, i * cols + j].reshape(b, 18, win, win)
+        layout = cfg.layout
+        canvas = acc.new_zeros(b, 18, *layout.padded_size)
+        for k, r, c in layout.origins():
+            canvas[:, :, r : r + win, c : c + win] += acc[:, k].reshape(b, 18, win, win)
+        t_o = layout.overlap
         canvas = canvas[:, :, t_o : t_o + cfg.image_height, t_o : t_o + cfg.image_width]
         out = self.composite(canvas.view(b, 3, 6, cfg.image_height, cfg.image_width), background)
         return self._encode(out.clamp_min(0.0))

@@ -34,6 +34,7 @@ import onnxruntime as ort
 from ..core.checks import check_at_least, check_finite, format_location
 from ..core.normalization import Normalization
 from ..core.optics import ThinLens
+from ..core.tiling import TileLayout
 
 log = logging.getLogger(__name__)
 
@@ -78,7 +79,7 @@ class BokehModel:
         self.normalization = Normalization.from_dict(self.meta["normalization"])
         self.max_coc_px = float(self.meta["max_coc_px"])
         self.coc_scale_px = float(self.meta["coc_scale_px"])
-        self.layout = tuple(int(v) for v in self.meta["layout"])
+        self.layout = TileLayout(*(int(v) for v in self.meta["layout"]))
         self.skip_in_focus, self.in_focus_px = skip_in_focus, float(in_focus_px)
         self.has_bands = "band_active" in {i.name for i in self.session.get_inputs()}
         self.last_tiles_run = 0
@@ -86,7 +87,7 @@ class BokehModel:
 
     @property
     def num_tiles(self) -> int:
-        return self.layout[0] * self.layout[1]
+        return self.layout.num_tiles
 
     def coc_px(self, depth_m: np.ndarray, focus_m: float) -> np.ndarray:
         """Signed CoC diameter in px (negative in front of the focus plane) from planar depth in m
@@ -119,14 +120,12 @@ class BokehModel:
     def active_tiles(self, coc_px: np.ndarray) -> np.ndarray:
         """``(tiles,)`` bool: tiles whose window holds a |CoC| >= ``in_focus_px`` in any image of
         the batch ``(B, H, W)`` (all true when skipping is off)."""
-        rows, cols, t, t_o = self.layout
         if not self.skip_in_focus:
-            return np.ones(rows * cols, dtype=bool)
-        peak = np.abs(coc_px).max(axis=0)
-        padded = np.pad(peak, ((t_o, t_o + rows * t - self.height), (t_o, t_o + cols * t - self.width)), mode="edge")
-        win = t + 2 * t_o
-        return np.array([padded[i * t : i * t + win, j * t : j * t + win].max() >= self.in_focus_px
-                         for i in range(rows) for j in range(cols)], dtype=bool)
+            return np.ones(self.num_tiles, dtype=bool)
+        padded = self.layout.pad_image(np.abs(coc_px).max(axis=0), self.height, self.width)
+        win = self.layout.window
+        return np.array([padded[r : r + win, c : c + win].max() >= self.in_focus_px for _, r, c in self.layout.origins()],
+                        dtype=bool)
 
     def active_bands(self, coc_px: np.ndarray) -> np.ndarray:
         """``(tiles, N, 2)`` bool (lens models): whether any pixel that tile ``k`` scatters (its
@@ -136,8 +135,7 @@ class BokehModel:
         All true when skipping is off."""
         cfg = self.meta["model_config"]
         blocks, c_max = int(cfg["blocks"]), float(cfg["coc_scale_px"])
-        rows, cols, t, t_o = self.layout
-        flags = np.zeros((rows * cols, max(blocks, 1), 2), dtype=bool)
+        flags = np.zeros((self.num_tiles, max(blocks, 1), 2), dtype=bool)
         step = (max(c_max, 1.0) - 1.0) / max(blocks, 1)
         if not self.skip_in_focus or blocks == 0 or step <= 0:
             return np.ones_like(flags) if not self.skip_in_focus else flags
@@ -150,15 +148,11 @@ class BokehModel:
         # 1e-3 of a band centre (float32 rounding in the model): a superset of the non-zero hats
         lo = side + np.floor(np.maximum(pos - 1e-3, 0.0)).astype(np.int32)
         hi = side + np.floor(pos + 1e-3).astype(np.int32) + 1
-        for i in range(rows):
-            for j in range(cols):
-                # the pixels tile (i, j) scatters, in image coordinates (a border tile's source
-                # reaches into the edge padding, which repeats pixels of its own core)
-                r0, r1 = max(i * t, 0), min((i + 1) * t, self.height) if i < rows - 1 else self.height
-                c0, c1 = max(j * t, 0), min((j + 1) * t, self.width) if j < cols - 1 else self.width
-                seen_lo = np.bincount(lo[:, r0:r1, c0:c1].ravel(), minlength=3 * width)
-                seen = seen_lo + np.roll(seen_lo, 1) + np.bincount(hi[:, r0:r1, c0:c1].ravel(), minlength=3 * width + 1)[: 3 * width]
-                flags[i * cols + j] = (seen[: 2 * width].reshape(2, width)[:, 1 : blocks + 1] > 0).T
+        for k in range(self.num_tiles):
+            r0, r1, c0, c1 = self.layout.source_region(k, self.height, self.width)
+            seen_lo = np.bincount(lo[:, r0:r1, c0:c1].ravel(), minlength=3 * width)
+            seen = seen_lo + np.roll(seen_lo, 1) + np.bincount(hi[:, r0:r1, c0:c1].ravel(), minlength=3 * width + 1)[: 3 * width]
+            flags[k] = (seen[: 2 * width].reshape(2, width)[:, 1 : blocks + 1] > 0).T
         return flags
 
     def _images(self, aif: np.ndarray) -> tuple[np.ndarray, bool]:
