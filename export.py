@@ -44,8 +44,10 @@ def main(argv: list[str] | None = None) -> int:
     meta = report["metadata"]
     ranks = [r for r in meta["kernel_ranks"].values() if r]
     reduced = {k: v["scale"] for k, v in report["kernels"].items() if v.get("scale", 1) > 1}
-    print(f"model      {meta['image_size']['width']}x{meta['image_size']['height']} px, N = {meta['blocks']}, "
-          f"{meta['num_tiles']} tiles, max CoC {meta['max_coc_px']:.2f} px, {'fp16' if meta['fp16'] else 'fp32'}, opset {meta['opset']}")
+    contract, (rows, cols, _, _) = meta["contract"], meta["layout"]
+    size = contract["image_size"]
+    print(f"model      {size['width']}x{size['height']} px, N = {meta['model_config']['blocks']}, {rows * cols} tiles, "
+          f"max CoC {contract['max_coc_px']:.2f} px, {'fp16' if meta['fp16'] else 'fp32'}, opset {meta['opset']}")
     print(f"kernels    {meta['kernels']}: {len(ranks)} of {len(meta['kernel_ranks'])} convolutions separable"
           + (f" (ranks {min(ranks)}-{max(ranks)})" if ranks else "")
           + (f"; {len(reduced)} bands on coarser grids (x{min(reduced.values())}-x{max(reduced.values())})" if reduced else ""))

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from data_tools.mitsuba.render import render_aif, render_defocus, render_depth
+from data_tools.mitsuba.render import mitsuba_defocus, render_aif, render_depth
 from data_tools.mitsuba.scenes import OCCLUSION_FG_FOCUS_M, OCCLUSION_WALL_M, axis_camera, occlusion_scene
 from data_tools.mitsuba.variant import activate
 from neuralbokeh.core.apertures import ApertureModel, Gaussian
@@ -87,7 +87,7 @@ def main() -> None:
     for case, focus in (cases[c] for c in args.cases):
         coc = lens.coc_px(depth, focus, w, signed=True)
         t0 = time.perf_counter()
-        truth = render_defocus(mi, scene, cam, lens, aperture, focus, args.spp, seed=17).image
+        truth = mitsuba_defocus(mi, scene, cam, lens, aperture, focus, args.spp, seed=17).image
         print(f"\n{case}: focus {focus} m, CoC {coc.min():.1f} .. {coc.max():.1f} px, truth in {time.perf_counter() - t0:.0f} s")
         if args.save:
             write_image(args.save / f"{case.replace(' ', '_')}_truth.exr", truth)

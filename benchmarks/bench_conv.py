@@ -19,16 +19,18 @@ import time
 import torch
 import torch.nn.functional as F
 
+from neuralbokeh.core.contract import Contract
+from neuralbokeh.core.normalization import Normalization
 from neuralbokeh.networks.config import ModelConfig
-from neuralbokeh.networks.paper import NeuralBokeh, PerChannelConv
+from neuralbokeh.networks.paper import PaperBokeh, PerChannelConv
 
 
-def _step_time(cfg: ModelConfig, batch: int, repeats: int) -> float:
+def _step_time(cfg: ModelConfig, size: int, batch: int, repeats: int) -> float:
     torch.manual_seed(0)
-    model = NeuralBokeh(cfg)
+    model = PaperBokeh(cfg, Contract(size, size, Normalization(), 1.0, 1.0))
     opt = torch.optim.Adam(model.parameters(), lr=1e-3)
-    x = torch.rand(batch, 4, cfg.image_height, cfg.image_width) * 1.9 - 0.95
-    y = torch.rand(batch, 3, cfg.image_height, cfg.image_width) * 1.9 - 0.95
+    x = torch.rand(batch, 4, size, size) * 1.9 - 0.95
+    y = torch.rand(batch, 3, size, size) * 1.9 - 0.95
     times = []
     for i in range(repeats + 1):
         t0 = time.perf_counter()
@@ -70,9 +72,10 @@ def main() -> None:
     print(f"training step, {args.size}x{args.size}, batch {args.batch}, {args.threads} thread(s), median of {args.repeats}")
     print(f"{'N':>3} {'k max':>6} {'direct s':>9} {'fft s':>8} {'direct/fft':>11}")
     for n in args.blocks:
-        common = dict(image_height=args.size, image_width=args.size, blocks=n, features=8, tile=args.size // 2, overlap=args.size // 8)
-        direct = _step_time(ModelConfig(**common, fft_min_kernel=10**6, fft_min_kernel_train=10**6, architecture="paper"), args.batch, args.repeats)
-        fast = _step_time(ModelConfig(**common, architecture="paper"), args.batch, args.repeats)
+        common = dict(blocks=n, features=8, tile=args.size // 2, overlap=args.size // 8)
+        direct = _step_time(ModelConfig(**common, fft_min_kernel=10**6, fft_min_kernel_train=10**6, architecture="paper"),
+                            args.size, args.batch, args.repeats)
+        fast = _step_time(ModelConfig(**common, architecture="paper"), args.size, args.batch, args.repeats)
         print(f"{n:>3} {2 * n + 1:>6} {direct:>9.2f} {fast:>8.2f} {direct / fast:>11.1f}", flush=True)
     print("\none depthwise layer, 32 channels, 2 x 192 x 192 (ms)")
     print(f"{'k':>3} {'direct fwd':>11} {'fft fwd':>8} {'direct f+b':>11} {'fft f+b':>8}")

@@ -20,8 +20,8 @@ import time
 import numpy as np
 import torch
 
-from data_tools.mitsuba.render import render_aif, render_defocus, render_depth
-from data_tools.mitsuba.scenes import SceneParams, axis_camera, procedural_scene
+from data_tools.mitsuba.render import mitsuba_defocus, render_aif, render_depth
+from data_tools.mitsuba.scenes import MitsubaSceneParams, axis_camera, procedural_scene
 from data_tools.mitsuba.variant import activate
 from neuralbokeh.core.apertures import ApertureModel, Polygon
 from neuralbokeh.evaluation.metrics import image_metrics
@@ -48,7 +48,7 @@ def main() -> None:
     lens = ThinLens(85.0, 1.4, 36.0)
     cam = axis_camera(mi, 85.0, 36.0, w, h)
     ap = ApertureModel(Polygon(7), cat_eye=0.6)
-    params = SceneParams(near_m=1.5, far_m=12.0)
+    params = MitsubaSceneParams(near_m=1.5, far_m=12.0)
     print(f"mitsuba {mi.__version__} variant {mi.variant()}; {w}x{h} px, 85 mm f/1.4, 7 blades, cat-eye 0.6")
 
     parts = args.parts.split(",")
@@ -65,7 +65,7 @@ def _noise_parts(mi, args, cam, lens, ap, params, parts) -> None:
     focus = float(np.percentile(depth[np.isfinite(depth)], 30))
     print(f"focus {focus:.2f} m; max |CoC| {np.abs(lens.coc_px(depth, focus, w, signed=True)).max():.1f} px")
     t0 = time.perf_counter()
-    ref = render_defocus(mi, scene, cam, lens, ap, focus, args.ref_spp, seed=999).image
+    ref = mitsuba_defocus(mi, scene, cam, lens, ap, focus, args.ref_spp, seed=999).image
     print(f"reference {args.ref_spp} spp: {time.perf_counter() - t0:.1f} s\n")
     if "noise" in parts:
         _ladder(mi, args, scene, cam, lens, ap, focus, ref)
@@ -79,7 +79,7 @@ def _ladder(mi, args, scene, cam, lens, ap, focus, ref) -> None:
     base = None
     for spp in args.ladder:
         t0 = time.perf_counter()
-        res = render_defocus(mi, scene, cam, lens, ap, focus, spp, seed=spp)
+        res = mitsuba_defocus(mi, scene, cam, lens, ap, focus, spp, seed=spp)
         sec = time.perf_counter() - t0
         err = float(np.sqrt(np.mean((_tm(res.image) - _tm(ref)) ** 2)))
         base = base or (sec, err)
@@ -92,7 +92,7 @@ def _targets(mi, args, scene, cam, lens, ap, focus, ref) -> None:
     print(f"{'target':>8} {'spp used':>9} {'seconds':>8} {'RMS err (tm)':>13}")
     for target in args.targets:
         t0 = time.perf_counter()
-        res = render_defocus(mi, scene, cam, lens, ap, focus, 1024, noise_target=target, rounds=8, seed=7)
+        res = mitsuba_defocus(mi, scene, cam, lens, ap, focus, 1024, noise_target=target, rounds=8, seed=7)
         err = float(np.sqrt(np.mean((_tm(res.image) - _tm(ref)) ** 2)))
         print(f"{target:>8} {res.spp:>9} {time.perf_counter() - t0:>8.2f} {err:>13.5f}")
 
@@ -103,7 +103,7 @@ def _crosscheck(mi, args, cam, lens, ap, params) -> None:
         sc = mi.load_dict(procedural_scene(mi, np.random.default_rng(args.seed + 1), cam, params, planar=planar)[0])
         aif, z = render_aif(mi, sc, cam, 512), render_depth(mi, sc, cam)
         f = float(np.percentile(z[np.isfinite(z)], 30))
-        theirs = render_defocus(mi, sc, cam, lens, ap, f, args.ref_spp, seed=11).image
+        theirs = mitsuba_defocus(mi, sc, cam, lens, ap, f, args.ref_spp, seed=11).image
         ours = scatter_render(torch.from_numpy(aif.transpose(2, 0, 1))[None], torch.from_numpy(z)[None, None], lens, f, ap)
         m = image_metrics(ours[0].numpy().transpose(1, 2, 0), theirs)
         ident = image_metrics(aif, theirs)

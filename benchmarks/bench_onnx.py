@@ -30,7 +30,7 @@ import numpy as np
 from neuralbokeh.data.dataset import FocalStackDataset
 from neuralbokeh.export.exporter import export_checkpoint
 from neuralbokeh.export.lowrank import DEFAULT_KERNELS
-from neuralbokeh.runtime.onnx_model import BokehModel
+from neuralbokeh.runtime.onnx_model import OnnxBokeh
 from neuralbokeh.checkpoint import load_checkpoint
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -74,26 +74,26 @@ def main() -> None:
     args = p.parse_args()
     ckpt_path = args.checkpoint or make_checkpoint(args.data, ROOT / "runs" / "onnx_bench", args.minutes)
     ckpt = load_checkpoint(ckpt_path)
-    cfg = ckpt["model_config"]
+    cfg, size = ckpt["model_config"], ckpt["contract"]["image_size"]
     k_max = 2 * cfg["blocks"] + 1
     test = FocalStackDataset(args.data, "test", ckpt["train_config"]["data"]["test_fraction"],
                              ckpt["train_config"]["data"]["split_seed"], normalize=False)
     items = [test[i] for i in range(min(args.samples, len(test)))]
-    mp = cfg["image_height"] * cfg["image_width"] / 1e6
-    print(f"model: {cfg['image_width']}x{cfg['image_height']}, N = {cfg['blocks']} (k_max {k_max}), {cfg['features']} features, "
+    mp = size["height"] * size["width"] / 1e6
+    print(f"model: {size['width']}x{size['height']}, N = {cfg['blocks']} (k_max {k_max}), {cfg['features']} features, "
           f"{ckpt['step']} training steps; {len(items)} held-out samples; {args.threads} threads, median of {args.repeats}")
     rows, models = [], {}
     with tempfile.TemporaryDirectory() as tmp:
         for spec in args.kernels:
             path = Path(tmp) / f"{spec.replace(':', '_')}.onnx"
             rep = export_checkpoint(ckpt_path, path, kernels=spec, threads=args.threads)
-            m = BokehModel(path, threads=args.threads, skip_in_focus=False)
+            m = OnnxBokeh(path, threads=args.threads, skip_in_focus=False)
             models[spec] = path
             psnrs = []
             for it in items:
                 out = m.render_coc(it["aif"].numpy().transpose(1, 2, 0), it["coc"][0].numpy())
-                psnrs.append(_psnr(m.normalization.encode(out.astype(np.float64)),
-                                   m.normalization.encode(it["defocus"].numpy().transpose(1, 2, 0).astype(np.float64))))
+                psnrs.append(_psnr(m.contract.normalization.encode(out.astype(np.float64)),
+                                   m.contract.normalization.encode(it["defocus"].numpy().transpose(1, 2, 0).astype(np.float64))))
             first = items[0]
             ms = _median_ms(lambda m=m, it=first: m.render_coc(it["aif"].numpy().transpose(1, 2, 0), it["coc"][0].numpy()),
                             args.repeats)
@@ -104,8 +104,8 @@ def main() -> None:
         for spec, psnr, ms_mp, sep, total in rows:
             print(f"{spec:<14} {psnr:>8.3f} {psnr - base_psnr:>+7.3f} {ms_mp:>9.0f} {base_ms / ms_mp:>8.2f}x {sep:>4}/{total}")
 
-        m_skip = BokehModel(models.get(DEFAULT_KERNELS, models[args.kernels[0]]), threads=args.threads)
-        m_full = BokehModel(models.get(DEFAULT_KERNELS, models[args.kernels[0]]), threads=args.threads, skip_in_focus=False)
+        m_skip = OnnxBokeh(models.get(DEFAULT_KERNELS, models[args.kernels[0]]), threads=args.threads)
+        m_full = OnnxBokeh(models.get(DEFAULT_KERNELS, models[args.kernels[0]]), threads=args.threads, skip_in_focus=False)
         it = items[0]
         aif, coc = it["aif"].numpy().transpose(1, 2, 0), it["coc"][0].numpy().astype(np.float64)
         rows_, cols, t, t_o = m_skip.layout

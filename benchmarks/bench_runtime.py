@@ -83,24 +83,23 @@ def make_model(out: Path, reuse: bool) -> dict[str, Path]:
     """The prior-initialised checkpoint and its three exports."""
     import torch
 
+    from neuralbokeh.checkpoint import save_checkpoint
     from neuralbokeh.core.apertures import ApertureModel, parse_aperture
-    from neuralbokeh.export.exporter import export_checkpoint
-    from neuralbokeh.networks import ModelConfig, build_model
+    from neuralbokeh.core.contract import Contract
     from neuralbokeh.core.normalization import Normalization
     from neuralbokeh.core.optics import ThinLens
-    from neuralbokeh.checkpoint import save_checkpoint
+    from neuralbokeh.export.exporter import export_checkpoint
+    from neuralbokeh.networks import ModelConfig, build_model
 
     out.mkdir(parents=True, exist_ok=True)
     aperture = ApertureModel(parse_aperture("polygon:7"))
-    cfg = ModelConfig(image_height=H, image_width=W, blocks=20, tile=TILE, overlap=OVERLAP, architecture="lens",
-                      coc_scale_px=C_MAX, pupil_init="aperture", init_aperture=aperture.to_dict())
+    cfg = ModelConfig(blocks=20, tile=TILE, overlap=OVERLAP, architecture="lens", pupil_init="aperture")
+    contract = Contract(H, W, Normalization(0.18), C_MAX, C_MAX, ThinLens(50.0, 1.8, 36.0), aperture.to_dict())
     ckpt = out / "prior_1080p.pt"
     if not (reuse and ckpt.exists()):
         torch.manual_seed(0)
-        save_checkpoint(ckpt, {"model_config": cfg.to_dict(), "model_state": build_model(cfg).state_dict(),
-                               "lens": ThinLens(50.0, 1.8, 36.0).to_dict(), "aperture": aperture.to_dict(),
-                               "normalization": Normalization(0.18).to_dict(), "coc_scale_px": C_MAX, "max_coc_px": C_MAX,
-                               "step": 0})
+        save_checkpoint(ckpt, {"model_config": cfg.to_dict(), "contract": contract.to_dict(),
+                               "model_state": build_model(cfg, contract).state_dict(), "step": 0})
     paths = {"checkpoint": ckpt}
     for name, kernels, fp16 in (("default", None, False), ("direct", "direct", False), ("default_fp16", None, True)):
         path = out / f"{name}.onnx"
@@ -118,7 +117,7 @@ def trained_loss(ckpt: Path, data: Path, out: Path, threads: int) -> None:
     default exports through the runtime, and ms per frame (median over the samples)."""
     from neuralbokeh.data.dataset import FocalStackDataset
     from neuralbokeh.export.exporter import export_checkpoint
-    from neuralbokeh.runtime.onnx_model import BokehModel
+    from neuralbokeh.runtime.onnx_model import OnnxBokeh
     from neuralbokeh.checkpoint import load_checkpoint
 
     if data is None:
@@ -131,7 +130,7 @@ def trained_loss(ckpt: Path, data: Path, out: Path, threads: int) -> None:
     for name, kernels in (("direct", "direct"), ("default", None)):
         path = out / f"trained_{name}.onnx"
         rep = export_checkpoint(ckpt, path, kernels=kernels, threads=threads)
-        model = BokehModel(path, threads=threads)
+        model = OnnxBokeh(path, threads=threads)
         values, times = [], []
         for it in items:
             aif, coc = it["aif"].numpy().transpose(1, 2, 0), it["coc"][0].numpy()
@@ -151,9 +150,9 @@ def worker(args: argparse.Namespace) -> None:
     aif, coc = data["aif"], data["coc"]
     kind, _, arg = args.worker.partition(":")
     if kind == "onnx":
-        from neuralbokeh.runtime.onnx_model import BokehModel
+        from neuralbokeh.runtime.onnx_model import OnnxBokeh
 
-        model = BokehModel(arg, threads=args.threads)
+        model = OnnxBokeh(arg, threads=args.threads)
 
         def run() -> np.ndarray:
             return model.render_coc(aif, coc)
@@ -168,16 +167,16 @@ def worker(args: argparse.Namespace) -> None:
         a = torch.from_numpy(aif).permute(2, 0, 1)[None].double()
         c = torch.from_numpy(coc)[None, None].double()
         if kind == "eager":
-            from neuralbokeh.core.normalization import Normalization
             from neuralbokeh.checkpoint import load_model
 
-            model, ckpt = load_model(arg)
-            norm = Normalization.from_dict(ckpt["normalization"])
-            x = torch.cat([torch.from_numpy(norm.encode(aif.astype(np.float64))).permute(2, 0, 1)[None], c / C_MAX], 1).float()
+            model, _ = load_model(arg)
+
+            def network(x: torch.Tensor) -> torch.Tensor:
+                with torch.no_grad():
+                    return model(x.float()).double()
 
             def run() -> np.ndarray:
-                with torch.no_grad():
-                    return norm.decode(model(x)[0].permute(1, 2, 0).double().numpy())
+                return model.contract.apply(network, a, c)[0].permute(1, 2, 0).numpy()
         elif kind == "gaussian":
             def run() -> np.ndarray:
                 return gaussian_defocus(a, c)[0].permute(1, 2, 0).numpy()

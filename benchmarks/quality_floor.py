@@ -27,14 +27,13 @@ import argparse
 from pathlib import Path
 
 import torch
-from kornia.metrics import psnr, ssim
 
 from data_tools.synth import main as synth
-from neuralbokeh.core.apertures import ApertureModel, Gaussian
-from neuralbokeh.data.dataset import FocalStackDataset, Normalization
-from neuralbokeh.render import scatter_defocus
-from neuralbokeh.training import load_config, train
+from neuralbokeh.core.normalization import Normalization
+from neuralbokeh.data.dataset import FocalStackDataset
 from neuralbokeh.evaluation.ablations import VARIANTS
+from neuralbokeh.training import load_config, train
+from neuralbokeh.training.loop import held_out_baselines
 
 ROOT = Path(__file__).resolve().parents[1]
 LENSES = {
@@ -45,23 +44,12 @@ LENSES = {
 
 def baselines(cfg) -> dict[str, tuple[float, float]]:
     """Mean held-out (PSNR, SSIM), in the training metric, of the AIF unchanged, the CoC-driven
-    Gaussian scatter and the exact-aperture scatter (oracle), all fed the held-out AIF + CoC."""
+    Gaussian scatter and the exact-aperture scatter (oracle), all fed the held-out AIF + CoC
+    (``training.loop.held_out_baselines``, what training reports beside the model)."""
     norm = Normalization(cfg.data.normalization_scale)
     ds = FocalStackDataset(cfg.data.roots, "test", cfg.data.test_fraction, cfg.data.split_seed, norm)
-    gauss = ApertureModel(Gaussian(0.5))
-    sums = {k: [0.0, 0.0] for k in ("identity", "gaussian", "oracle")}
-    for i in range(len(ds)):
-        it = ds[i]
-        x, y = it["aif"][None].double(), it["defocus"][None].double()
-        linear, coc = norm.decode(x), it["coc"][None].double() * ds.coc_scale_px
-        exact = ApertureModel.from_dict(ds.metas[ds.items[i][0]]["aperture"])
-        preds = {"identity": x, "gaussian": norm.encode(scatter_defocus(linear, coc, gauss)),
-                 "oracle": norm.encode(scatter_defocus(linear, coc, exact))}
-        for k, pred in preds.items():
-            a, b = (pred.float() + 1) / 2, (y.float() + 1) / 2
-            sums[k][0] += float(psnr(a, b, 1.0)) / len(ds)
-            sums[k][1] += float(ssim(a, b, 11).mean()) / len(ds)
-    return {k: (v[0], v[1]) for k, v in sums.items()}
+    m = held_out_baselines(ds)
+    return {k: (m[f"{k}_psnr"], m[f"{k}_ssim"]) for k in ("identity", "gaussian", "oracle")}
 
 
 def main() -> None:

@@ -17,7 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from neuralbokeh.export.exporter import export_checkpoint, probe_inputs, run_session, session
+from neuralbokeh.export.exporter import export_checkpoint, probe_inputs, run_session
+from neuralbokeh.runtime.onnx_model import make_session as session
 
 
 def main() -> None:
@@ -33,11 +34,12 @@ def main() -> None:
                 rep = export_checkpoint(ckpt, path, fp16=fp16, kernels="direct", threads=args.threads)
                 meta = rep["metadata"]
                 sess = session(str(path), args.threads)
-                for name, (aif, coc) in probe_inputs(meta["image_size"]["height"], meta["image_size"]["width"]).items():
+                size = meta["contract"]["image_size"]
+                for name, (aif, coc) in probe_inputs(size["height"], size["width"]).items():
                     out = run_session(sess, aif, coc)
                     rows.setdefault(name, []).extend([rep["parity"][name], float(np.abs(out).max())])
-            print(f"\n{ckpt}: {meta['image_size']['width']}x{meta['image_size']['height']}, N = {meta['blocks']}, "
-                  f"{meta['num_tiles']} tiles")
+            print(f"\n{ckpt}: {size['width']}x{size['height']}, N = {meta['model_config']['blocks']}, "
+                  f"{meta['layout'][0] * meta['layout'][1]} tiles")
             print(f"{'case':<24} {'fp32 max err':>13} {'fp32 max|y|':>12} {'fp16 max err':>13} {'fp16 max|y|':>12}")
             for name, (e32, y32, e16, y16) in rows.items():
                 print(f"{name:<24} {e32:>13.2e} {y32:>12.7f} {e16:>13.2e} {y16:>12.7f}")

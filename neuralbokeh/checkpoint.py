@@ -1,44 +1,41 @@
 """Checkpoints: everything needed to rebuild the model (and to resume training) in one file.
 
-A checkpoint stores the model config next to the weights, with the lens, aperture,
-normalisation and CoC scale of the data it was trained on, so ``load_model(path)`` needs no
-other input. Files are written to a temporary name and renamed (never half-written).
+A checkpoint stores the model config and the data contract (:class:`~neuralbokeh.core.contract.Contract`:
+image size, normalisation, CoC scale, largest CoC, lens, aperture) next to the weights, so
+``load_model(path)`` needs no other input. Files are written atomically (``core.io.atomic_write``).
+Version 1 files (loose contract keys) are read and upgraded in memory.
 """
 
 from __future__ import annotations
 
 import os
 import pickle
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import torch
+import torch.nn as nn
 
 from . import __version__
+from .core.contract import Contract
+from .core.io import atomic_write
 from .networks import ModelConfig, build_model
-from .networks.paper import NeuralBokeh
 
 FORMAT = "neuralbokeh-checkpoint"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: the data contract under "contract" (1: loose keys, read and upgraded)
 
 
 def save_checkpoint(path: str | os.PathLike, payload: dict[str, Any]) -> Path:
-    """Write ``payload`` (must hold ``model_config`` and ``model_state``) atomically."""
+    """Write ``payload`` atomically; it must hold ``model_config`` (``ModelConfig.to_dict()``),
+    ``contract`` (``Contract.to_dict()``) and ``model_state``."""
     path = Path(path)
-    for key in ("model_config", "model_state"):
+    for key in ("model_config", "contract", "model_state"):
         if key not in payload:
             raise ValueError(f"checkpoint payload needs {key!r}")
     path.parent.mkdir(parents=True, exist_ok=True)
     data = {"format": FORMAT, "format_version": FORMAT_VERSION, "package_version": __version__, **payload}
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
+    with atomic_write(path) as tmp:
         torch.save(data, tmp)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
     return path
 
 
@@ -58,14 +55,19 @@ def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = 
         raise ValueError(f"{path} is not a neuralbokeh checkpoint (torch.load: {' '.join(str(e).split())[:200]})") from e
     if not isinstance(data, dict) or data.get("format") != FORMAT:
         raise ValueError(f"{path} is not a neuralbokeh checkpoint")
-    if data.get("format_version") != FORMAT_VERSION:
-        raise ValueError(f"{path}: checkpoint format_version {data.get('format_version')} is not supported")
+    version = data.get("format_version")
+    if version == 1:  # the contract as loose keys beside a model config holding the image size
+        data["contract"] = Contract.from_legacy(data, data["model_config"]).to_dict()
+        data["format_version"] = FORMAT_VERSION
+    elif version != FORMAT_VERSION:
+        raise ValueError(f"{path}: checkpoint format_version {version} is not supported (1..{FORMAT_VERSION})")
     return data
 
 
-def load_model(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> tuple[NeuralBokeh, dict[str, Any]]:
-    """Rebuild the network from a checkpoint alone; returns ``(model in eval mode, checkpoint)``."""
+def load_model(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> tuple[nn.Module, dict[str, Any]]:
+    """Rebuild the network from a checkpoint alone; returns ``(model in eval mode, checkpoint)``
+    (the model's ``contract`` attribute is the checkpoint's)."""
     data = load_checkpoint(path, map_location)
-    model = build_model(ModelConfig.from_dict(data["model_config"]))
+    model = build_model(ModelConfig.from_dict(data["model_config"]), Contract.from_dict(data["contract"]))
     model.load_state_dict(data["model_state"])
     return model.eval(), data

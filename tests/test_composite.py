@@ -9,7 +9,7 @@ from kornia.morphology import erosion
 from neuralbokeh.runtime.composite import composite_frame, main
 from neuralbokeh.core.io import read_image, write_image
 from neuralbokeh.runtime.masks import erode, gaussian_blur
-from neuralbokeh.runtime.onnx_model import BokehModel
+from neuralbokeh.runtime.onnx_model import OnnxBokeh
 
 
 @pytest.mark.parametrize("radius", [1, 2])
@@ -29,7 +29,7 @@ def test_gaussian_blur_matches_kornia(sigma):
     np.testing.assert_allclose(gaussian_blur(m, sigma), want.numpy(), atol=1e-6)
 
 
-def _inputs(m: BokehModel, seed=0):
+def _inputs(m: OnnxBokeh, seed=0):
     g = np.random.default_rng(seed)
     plate = (0.18 * np.exp2(g.uniform(-2, 2, (m.height, m.width, 3)))).astype(np.float32)
     render = (0.18 * np.exp2(g.uniform(-2, 4, (m.height, m.width, 3)))).astype(np.float32)
@@ -40,7 +40,7 @@ def _inputs(m: BokehModel, seed=0):
 
 
 def test_cli_composites_in_linear_light(busy_onnx, tmp_path):
-    m = BokehModel(busy_onnx, threads=1)
+    m = OnnxBokeh(busy_onnx, threads=1)
     plate, render, depth, alpha = _inputs(m)
     for name, img in (("plate", plate), ("render", render), ("depth", depth), ("alpha", alpha)):
         write_image(tmp_path / f"{name}.exr", img)
@@ -59,7 +59,7 @@ def test_cli_composites_in_linear_light(busy_onnx, tmp_path):
 
 
 def test_cli_sequence_with_focus_pull_and_png(busy_onnx, tmp_path):
-    m = BokehModel(busy_onnx, threads=1)
+    m = OnnxBokeh(busy_onnx, threads=1)
     plate, render, depth, alpha = _inputs(m, seed=1)
     write_image(tmp_path / "plate.exr", plate)
     write_image(tmp_path / "depth.exr", depth)

@@ -13,7 +13,7 @@ import torch
 from neuralbokeh.export.exporter import calibration_inputs, export_checkpoint, probe_inputs, run_session
 from neuralbokeh.export.lens_graph import LENS_DEFAULT_KERNELS
 from neuralbokeh.export.lowrank import cheaper_ranks, factorize, parse_kernels, reconstruct, relative_error
-from neuralbokeh.training import load_model
+from neuralbokeh.checkpoint import load_model
 from neuralbokeh.checkpoint import load_checkpoint
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -53,7 +53,7 @@ def test_cheaper_ranks_and_kernel_spec_parsing():
 
 
 def _run_onnx(path, aif, coc, active=None):
-    from neuralbokeh.export.exporter import session
+    from neuralbokeh.runtime.onnx_model import make_session as session
 
     return run_session(session(str(path), threads=1), aif, coc, active)
 
@@ -65,12 +65,10 @@ def test_export_direct_matches_pytorch_and_carries_metadata(busy_checkpoint, tmp
     assert max(report["parity"].values()) <= 1e-4
     model, ckpt = load_model(busy_checkpoint)
     meta = json.loads({p.key: p.value for p in onnx.load(out).metadata_props}["neuralbokeh"])
-    assert meta["model_config"] == ckpt["model_config"] and meta["lens"] == ckpt["lens"]
-    assert meta["normalization"] == ckpt["normalization"] and meta["aperture"] == ckpt["aperture"]
-    assert meta["max_coc_px"] == pytest.approx(ckpt["max_coc_px"]) and meta["blocks"] == model.config.blocks
-    assert meta["layout"] == list(model.config.layout) and meta["package_version"]
+    assert meta["model_config"] == ckpt["model_config"] and meta["contract"] == ckpt["contract"]
+    assert meta["format_version"] == 2 and meta["layout"] == list(model.layout) and meta["package_version"]
     # independent check on fresh inputs, batch of 3 (dynamic batch)
-    x = calibration_inputs(model.config.image_height, model.config.image_width, count=3, seed=5)
+    x = calibration_inputs(*model.contract.size, count=3, seed=5)
     got = _run_onnx(out, x[:, :3].numpy(), x[:, 3:].numpy())
     with torch.no_grad():
         want = model(x).numpy()
@@ -104,7 +102,7 @@ def test_lowrank_export_matches_its_reference_and_approximates_the_model(busy_pa
     assert max(rep1["approximation"].values()) > 1e-4  # rank 1 is not the trained function
     auto = export_checkpoint(busy_checkpoint, tmp_path / "auto.onnx", kernels="auto:0.002", threads=1)
     assert max(auto["parity"].values()) <= 1e-4
-    x = calibration_inputs(model.config.image_height, model.config.image_width)
+    x = calibration_inputs(*model.contract.size)
     got = _run_onnx(tmp_path / "auto.onnx", x[:, :3].numpy(), x[:, 3:].numpy())
     with torch.no_grad():
         want = model(x).numpy()
@@ -161,7 +159,7 @@ def test_multires_export_matches_its_pytorch_reference(busy_checkpoint, tmp_path
     scales = {int(k[4:]): v["scale"] for k, v in report["kernels"].items()}
     assert max(scales.values()) >= 2 and min(scales.values()) == 1  # the tiny model's wide bands are reduced
     assert max(report["parity"].values()) <= 1e-4 and max(report["approximation"].values()) > 1e-4
-    x = calibration_inputs(model.config.image_height, model.config.image_width, count=2, seed=9)
+    x = calibration_inputs(*model.contract.size, count=2, seed=9)
     got = _run_onnx(tmp_path / "m.onnx", x[:, :3].numpy(), x[:, 3:].numpy())
     with torch.no_grad():
         want, exact = model(x, scales=scales).numpy(), model(x).numpy()

@@ -5,6 +5,7 @@ import pytest
 import torch
 
 from neuralbokeh.core.apertures import ApertureModel, Disk
+from neuralbokeh.core.contract import Contract
 from neuralbokeh.networks.lens import band_diameters, band_gates, band_scales, bucket_weights, reduce_kernel
 from neuralbokeh.networks import ModelConfig, build_model
 from neuralbokeh.core.normalization import Normalization
@@ -16,9 +17,8 @@ C_MAX = 13.0
 
 def _model(size=48, tile=24, overlap=8, blocks=6, init="disk", **kw):
     torch.manual_seed(0)
-    cfg = ModelConfig(image_height=size, image_width=size, blocks=blocks, tile=tile, overlap=overlap,
-                      coc_scale_px=C_MAX, pupil_init=init, **kw)
-    return build_model(cfg).eval()
+    cfg = ModelConfig(blocks=blocks, tile=tile, overlap=overlap, pupil_init=init, **kw)
+    return build_model(cfg, Contract(size, size, NORM, C_MAX, C_MAX)).eval()
 
 
 def _run(model, linear, coc_px):
@@ -205,9 +205,9 @@ def test_what_a_blurred_foreground_uncovers_is_the_background_not_the_foreground
 
 
 def test_checkpoints_without_a_fill_keep_normalising():
-    d = ModelConfig(image_height=32, image_width=32, blocks=2, coc_scale_px=5.0).to_dict()
+    d = ModelConfig(blocks=2).to_dict()
     assert d["fill"] == "background"
     del d["fill"]
     assert ModelConfig.from_dict(d).fill == "normalize"
     with pytest.raises(ValueError, match="fill must be one of"):
-        ModelConfig(image_height=32, image_width=32, blocks=2, coc_scale_px=5.0, fill="inpaint")
+        ModelConfig(blocks=2, fill="inpaint")

@@ -12,7 +12,7 @@ pytest.importorskip("mitsuba", reason="mitsuba is not installed (pip install mit
 
 from data_tools.mitsuba.__main__ import main, parse_shard, shard_indices  # noqa: E402
 from data_tools.mitsuba.render import (  # noqa: E402
-    planar_depth_from_aov, render_aif, render_defocus, render_depth, tangent_grid)
+    mitsuba_defocus, planar_depth_from_aov, render_aif, render_depth, tangent_grid)
 from data_tools.mitsuba.scenes import Camera, fov_for_lens  # noqa: E402
 from data_tools.mitsuba.variant import activate, llvm_candidates, probe  # noqa: E402
 from neuralbokeh.core.apertures import ApertureModel, Disk, MaskAperture, Polygon
@@ -81,8 +81,8 @@ def test_disk_accumulation_matches_the_thinlens_sensor(mi):
                           "back": _rect(mi, 6.0, 4.0, None, texture=tex),
                           "front": _rect(mi, 1.0, 0.12, None, x=0.1, texture=tex[::-1].copy())})
     lens, ap = ThinLens(50.0, 1.4, 36.0), ApertureModel(Disk())
-    a = render_defocus(mi, scene, cam, lens, ap, 2.0, 512, "thinlens", seed=1)
-    b = render_defocus(mi, scene, cam, lens, ap, 2.0, 512, "accumulate", seed=2)
+    a = mitsuba_defocus(mi, scene, cam, lens, ap, 2.0, 512, "thinlens", seed=1)
+    b = mitsuba_defocus(mi, scene, cam, lens, ap, 2.0, 512, "accumulate", seed=2)
     assert a.spp == b.spp == 512
     psnr = image_metrics(b.image, a.image)["psnr_linear"]
     assert psnr >= 35.0, psnr
@@ -97,7 +97,7 @@ def test_emissive_point_blur_diameter_matches_coc(mi, method, depth, focus):
     lens = ThinLens(50.0, 1.2, 36.0)
     want = lens.coc_px(depth, focus, cam.width)
     assert want > 8.0
-    res = render_defocus(mi, _point_scene(mi, cam, depth), cam, lens, ApertureModel(Disk()), focus, 1024, method)
+    res = mitsuba_defocus(mi, _point_scene(mi, cam, depth), cam, lens, ApertureModel(Disk()), focus, 1024, method)
     img = res.image[..., 1]
     yy, xx = np.mgrid[:64, :64]
     m = img.sum()
@@ -116,7 +116,7 @@ def test_aperture_orientation_and_cat_eye_match_the_kernels(mi):
     corr = {}
     for depth, focus in ((2.0, 0.3), (0.3, 2.0)):  # behind, then in front of the focus: CoC 9.4 and -8.1 px
         x_tan, y_tan = (41.5 / 24 - 1) * cam.tan_half_x, (9.5 / 24 - 1) * cam.tan_half_x  # pixel (9, 41): the cat-eye clips
-        img = render_defocus(mi, _point_scene(mi, cam, depth, x_tan, y_tan, 0.5), cam, lens, tri, focus, 1024, seed=3).image[..., 1]
+        img = mitsuba_defocus(mi, _point_scene(mi, cam, depth, x_tan, y_tan, 0.5), cam, lens, tri, focus, 1024, seed=3).image[..., 1]
         col, row = 41.0, 9.0
         c = lens.coc_px(depth, focus, 48)
         half_diag = 0.5 * math.hypot(47, 47)
@@ -174,7 +174,7 @@ def test_fronto_parallel_scene_agrees_with_the_reference_scatter(mi):
     lens, ap = ThinLens(85.0, 1.4, 36.0), ApertureModel(Polygon(7), cat_eye=0.6)
     aif, depth = render_aif(mi, scene, cam, 1024), render_depth(mi, scene, cam)  # noise-limited: 512 spp gave 35.1 dB
     ours = scatter_render(torch.from_numpy(aif.transpose(2, 0, 1))[None], torch.from_numpy(depth)[None, None], lens, 3.0, ap)
-    theirs = render_defocus(mi, scene, cam, lens, ap, 3.0, 2048, seed=4).image
+    theirs = mitsuba_defocus(mi, scene, cam, lens, ap, 3.0, 2048, seed=4).image
     assert lens.coc_px(np.array([1.5, 8.0]), 3.0, 64).min() > 1.5  # both planes off the focus are blurred
     psnr = image_metrics(ours[0].numpy().transpose(1, 2, 0), theirs)["psnr_linear"]
     assert psnr >= 35.0, psnr
@@ -212,7 +212,7 @@ def test_a_square_aperture_renders_a_square(mi):
     cam = _camera(mi, 40, 40)
     lens = ThinLens(50.0, 1.2, 36.0)
     depth, focus = 2.0, 0.3
-    img = render_defocus(mi, _point_scene(mi, cam, depth, 0.0, 0.0, 0.5), cam, lens,
+    img = mitsuba_defocus(mi, _point_scene(mi, cam, depth, 0.0, 0.0, 0.5), cam, lens,
                          ApertureModel(MaskAperture(np.ones((8, 8)))), focus, 1024, seed=4).image[..., 1]
     c = lens.coc_px(depth, focus, 40)
     yy, xx = np.mgrid[:40, :40]

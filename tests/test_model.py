@@ -1,8 +1,14 @@
 import pytest
 import torch
 
+from neuralbokeh.core.contract import Contract
+from neuralbokeh.core.normalization import Normalization
 from neuralbokeh.networks.config import ModelConfig
-from neuralbokeh.networks.paper import NeuralBokeh, PerChannelConv, tile, untile
+from neuralbokeh.networks.paper import PaperBokeh, PerChannelConv, tile, untile
+
+
+def _paper(h, w, **kw):
+    return PaperBokeh(ModelConfig(architecture="paper", **kw), Contract(h, w, Normalization(), 1.0, 1.0))
 
 
 def _x(b, h, w, seed=0):
@@ -16,52 +22,50 @@ def _x(b, h, w, seed=0):
      (96, 128, 48, 12, "no_overlap"), (37, 50, 48, 12, "none"), (20, 20, 64, 32, "overlap")],
 )
 def test_tiling_round_trip_is_exact(h, w, t, t_o, tiling):
-    cfg = ModelConfig(h, w, blocks=1, tile=t, overlap=t_o, tiling=tiling, architecture="paper")
+    layout = ModelConfig(blocks=1, tile=t, overlap=t_o, tiling=tiling, architecture="paper").layout(h, w)
     x = _x(2, h, w)
-    tiles = tile(x, cfg.layout)
-    rows, cols, core, ov = cfg.layout
+    tiles = tile(x, layout)
+    rows, cols, core, ov = layout
     assert tiles.shape == (2, rows * cols * 4, core + 2 * ov, core + 2 * ov)
-    assert torch.equal(untile(tiles, cfg.layout, h, w), x)
+    assert torch.equal(untile(tiles, layout, h, w), x)
 
 
 def test_layouts():
-    assert ModelConfig(1080, 1920, blocks=1, architecture="paper").layout == (6, 10, 200, 60)  # the paper's 200 + 60 px
-    assert ModelConfig(1080, 1920, blocks=1, tiling="no_overlap", architecture="paper").layout == (6, 10, 200, 0)
-    assert ModelConfig(1080, 1920, blocks=1, tiling="none", architecture="paper").layout == (1, 1, 1920, 0)
-    assert ModelConfig(1080, 1920, blocks=1, architecture="paper").num_tiles == 60
+    assert ModelConfig(blocks=1, architecture="paper").layout(1080, 1920) == (6, 10, 200, 60)  # the paper's 200 + 60 px
+    assert ModelConfig(blocks=1, tiling="no_overlap", architecture="paper").layout(1080, 1920) == (6, 10, 200, 0)
+    assert ModelConfig(blocks=1, tiling="none", architecture="paper").layout(1080, 1920) == (1, 1, 1920, 0)
+    assert ModelConfig(blocks=1, architecture="paper").layout(1080, 1920).num_tiles == 60
 
 
 @pytest.mark.parametrize("h, w", [(96, 128), (50, 70)])
 def test_untrained_network_is_exactly_the_identity(h, w):
-    model = NeuralBokeh(ModelConfig(h, w, blocks=5, features=6, tile=32, overlap=8, architecture="paper"))
+    model = _paper(h, w, blocks=5, features=6, tile=32, overlap=8)
     x = _x(2, h, w)
     x[0, :3, 0, 0] = -1.0  # the very ends of the range too
     x[0, :3, 0, 1] = 0.999999
     assert torch.equal(model(x), x[:, :3])
-    paper = NeuralBokeh(ModelConfig(h, w, blocks=5, features=6, tile=32, overlap=8, head="paper", architecture="paper"))
+    paper = _paper(h, w, blocks=5, features=6, tile=32, overlap=8, head="paper")
     assert not torch.allclose(paper(x), x[:, :3], atol=1e-2)
 
 
 def test_shapes_kernels_and_parameters():
-    cfg = ModelConfig(40, 32, blocks=4, features=5, tile=16, overlap=4, architecture="paper")
-    model = NeuralBokeh(cfg)
+    model = _paper(40, 32, blocks=4, features=5, tile=16, overlap=4)
     assert [b.conv_a.kernel_size for b in model.blocks] == [3, 5, 7, 9]
-    fixed = NeuralBokeh(ModelConfig(40, 32, blocks=4, features=5, tile=16, overlap=4, kernels="fixed3", architecture="paper"))
+    fixed = _paper(40, 32, blocks=4, features=5, tile=16, overlap=4, kernel_sizes="fixed3")
     assert [b.conv_a.kernel_size for b in fixed.blocks] == [3, 3, 3, 3]
     assert model(_x(3, 40, 32)).shape == (3, 3, 40, 32)
-    assert model(_x(1, 40, 32), return_tiles=True).shape == (1, cfg.num_tiles * 3, 24, 24)
-    assert len(NeuralBokeh(ModelConfig(40, 32, blocks=0, tile=16, overlap=4, architecture="paper")).blocks) == 0
+    assert model(_x(1, 40, 32), return_tiles=True).shape == (1, model.layout.num_tiles * 3, 24, 24)
+    assert len(_paper(40, 32, blocks=0, tile=16, overlap=4).blocks) == 0
     with pytest.raises(ValueError, match=r"input must have shape \(B, 4, 40, 32\)"):
         model(_x(1, 32, 40))
 
 
 def test_every_tile_has_its_own_weights():
-    cfg = ModelConfig(64, 64, blocks=2, features=4, tile=32, overlap=0, tiling="no_overlap", architecture="paper")
-    model = NeuralBokeh(cfg)
+    model = _paper(64, 64, blocks=2, features=4, tile=32, overlap=0, tiling="no_overlap")
     torch.nn.init.normal_(model.c2.weight)
     out = model(_x(1, 64, 64))
     out[..., :32, :32].sum().backward()  # only the top-left tile's output
-    grads = model.c2.weight.grad.view(cfg.num_tiles, 3, -1).abs().sum(dim=(1, 2))
+    grads = model.c2.weight.grad.view(model.layout.num_tiles, 3, -1).abs().sum(dim=(1, 2))
     assert grads[0] > 0 and (grads[1:] == 0).all()
 
 
@@ -92,12 +96,18 @@ def test_fft_switch_depends_on_gradients():
 
 def test_config_validation():
     with pytest.raises(ValueError, match="overlap"):
-        ModelConfig(64, 64, blocks=1, tile=32, overlap=17, architecture="paper")
+        ModelConfig(blocks=1, tile=32, overlap=17, architecture="paper")
     with pytest.raises(ValueError, match="tiling must be one of"):
-        ModelConfig(64, 64, blocks=1, tiling="grid", architecture="paper")
+        ModelConfig(blocks=1, tiling="grid", architecture="paper")
     with pytest.raises(ValueError, match="blocks"):
-        ModelConfig(64, 64, blocks=-1, architecture="paper")
+        ModelConfig(blocks=-1, architecture="paper")
     with pytest.raises(ValueError, match="unknown model config keys"):
-        ModelConfig.from_dict({**ModelConfig(64, 64, blocks=1, architecture="paper").to_dict(), "depth": 3})
-    cfg = ModelConfig(64, 64, blocks=3, architecture="paper")
+        ModelConfig.from_dict({**ModelConfig(blocks=1, architecture="paper").to_dict(), "depth": 3})
+    cfg = ModelConfig(blocks=3, architecture="paper")
     assert ModelConfig.from_dict(cfg.to_dict()) == cfg
+    with pytest.raises(ValueError, match="resolved"):
+        _paper(64, 64)  # blocks = "auto" must be resolved from the data first
+    # a model config of a checkpoint written before the data contract: data fields dropped, names upgraded
+    old = {"image_height": 64, "image_width": 64, "coc_scale_px": 5.0, "norm_scale": 0.18, "norm_offset": 0.0018,
+           "init_aperture": None, "blocks": 2, "kernels": "fixed3", "architecture": "paper"}
+    assert ModelConfig.from_dict(old) == ModelConfig(blocks=2, kernel_sizes="fixed3", architecture="paper", fill="normalize")

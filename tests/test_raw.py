@@ -107,7 +107,8 @@ def test_missing_metadata_names_the_option(tmp_path, stack, capsys):
     root, _ = stack
     assert raw_main([str(root / "stack_a"), "--out", str(tmp_path / "x")]) == 1  # no --sensor-width
     assert "give --sensor-width" in capsys.readouterr().out
-    from data_tools.raw.__main__ import build_parser, lens_for
+    from data_tools.raw.__main__ import build_parser
+    from data_tools.raw.pipeline import lens_for
 
     args = build_parser().parse_args([str(root), "--out", "x", "--sensor-width", "12"])
     with pytest.raises(ValueError, match="no focal length mm in the metadata: give --focal-length"):

@@ -9,47 +9,45 @@ import numpy as np
 import pytest
 import torch
 
-from neuralbokeh.core.normalization import Normalization
-from neuralbokeh.runtime.onnx_model import BokehModel
-from neuralbokeh.training import load_model
+from neuralbokeh.runtime.onnx_model import OnnxBokeh
+from neuralbokeh.checkpoint import load_model
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _scene(model: BokehModel, seed=0):
+def _scene(model: OnnxBokeh, seed=0):
     g = np.random.default_rng(seed)
     aif = (0.18 * np.exp2(g.uniform(-3, 3, (model.height, model.width, 3)))).astype(np.float32)
     return aif
 
 
 def _torch_render(checkpoint, aif, coc_px):
-    model, ckpt = load_model(checkpoint)
-    norm = Normalization.from_dict(ckpt["normalization"])
-    x = np.concatenate([norm.encode(aif.astype(np.float64)).transpose(2, 0, 1), coc_px[None] / ckpt["coc_scale_px"]])
+    model, _ = load_model(checkpoint)
+    x = model.contract.network_input(aif.astype(np.float64).transpose(2, 0, 1)[None], coc_px[None, None])
     with torch.no_grad():
-        return model(torch.from_numpy(x[None]).float())[0].numpy()
+        return model(torch.from_numpy(x).float())[0].numpy()
 
 
 def test_render_matches_pytorch_through_lens_and_normalisation(busy_onnx, busy_checkpoint):
-    m = BokehModel(busy_onnx, threads=1, skip_in_focus=False)
+    m = OnnxBokeh(busy_onnx, threads=1, skip_in_focus=False)
     aif = _scene(m)
     depth = np.linspace(1.7, 2.5, m.height * m.width).reshape(m.height, m.width)
     focus = 2.0
     coc = m.coc_px(depth, focus)
-    assert np.abs(coc).max() <= m.max_coc_px
+    assert np.abs(coc).max() <= m.contract.max_coc_px
     out = m.render(aif, depth[..., None], focus)
     assert out.shape == aif.shape and out.dtype == np.float32
     want = _torch_render(busy_checkpoint, aif, coc)
-    got = m.normalization.encode(out.astype(np.float64)).transpose(2, 0, 1)
+    got = m.contract.normalization.encode(out.astype(np.float64)).transpose(2, 0, 1)
     assert np.abs(got - want).max() < 1e-4
     np.testing.assert_array_equal(out, m.render_coc(aif, coc))
     batch = m.render(np.stack([aif, aif[::-1].copy()]), np.stack([depth, depth]), focus)
     np.testing.assert_allclose(batch[0], out, rtol=1e-6, atol=1e-6)
-    assert m.lens.to_dict() == load_model(busy_checkpoint)[1]["lens"]
+    assert m.contract == load_model(busy_checkpoint)[0].contract
 
 
 def test_runtime_errors_name_the_value(busy_onnx):
-    m = BokehModel(busy_onnx, threads=1)
+    m = OnnxBokeh(busy_onnx, threads=1)
     aif = _scene(m)
     depth = np.full((m.height, m.width), 3.0)
     with pytest.raises(ValueError, match=rf"aif must have shape \({m.height}, {m.width}, 3\)"):
@@ -68,25 +66,25 @@ def test_runtime_errors_name_the_value(busy_onnx):
     with pytest.raises(ValueError, match="depth_m must have shape"):
         m.render(aif, depth[:, :5], 2.0)
     with pytest.raises(ValueError, match="exceeds the model's trained maximum"):
-        m.render_coc(aif, np.full(depth.shape, m.max_coc_px * 1.5))
+        m.render_coc(aif, np.full(depth.shape, m.contract.max_coc_px * 1.5))
     with pytest.raises(FileNotFoundError):
-        BokehModel(busy_onnx.parent / "missing.onnx")
+        OnnxBokeh(busy_onnx.parent / "missing.onnx")
 
 
 def test_clamping_the_coc_is_explicit_and_warns(busy_onnx):
-    m = BokehModel(busy_onnx, threads=1)
+    m = OnnxBokeh(busy_onnx, threads=1)
     aif = _scene(m)
-    coc = np.full((m.height, m.width), m.max_coc_px * 2.0)
+    coc = np.full((m.height, m.width), m.contract.max_coc_px * 2.0)
     with pytest.warns(UserWarning, match="clamped"):
         out = m.render_coc(aif, coc, clamp_coc=True)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        np.testing.assert_array_equal(out, m.render_coc(aif, np.full_like(coc, m.max_coc_px)))
+        np.testing.assert_array_equal(out, m.render_coc(aif, np.full_like(coc, m.contract.max_coc_px)))
 
 
 def test_depth_at_infinity_renders_finite(busy_onnx):
-    m = BokehModel(busy_onnx, threads=1)
-    focus = next(f for f in np.geomspace(0.2, 1e3, 200) if abs(m.coc_px(np.inf, f)) <= m.max_coc_px)
+    m = OnnxBokeh(busy_onnx, threads=1)
+    focus = next(f for f in np.geomspace(0.2, 1e3, 200) if abs(m.coc_px(np.inf, f)) <= m.contract.max_coc_px)
     out = m.render(_scene(m), np.full((m.height, m.width), np.inf), focus)
     assert np.isfinite(out).all()
 
@@ -94,13 +92,13 @@ def test_depth_at_infinity_renders_finite(busy_onnx):
 @pytest.mark.parametrize("which", ["lens", "paper"])
 def test_in_focus_tiles_are_skipped_and_defocused_ones_unchanged(which, request):
     busy_onnx = request.getfixturevalue("busy_onnx" if which == "lens" else "busy_paper_onnx")
-    m_full = BokehModel(busy_onnx, threads=1, skip_in_focus=False)
-    m_skip = BokehModel(busy_onnx, threads=1)
+    m_full = OnnxBokeh(busy_onnx, threads=1, skip_in_focus=False)
+    m_skip = OnnxBokeh(busy_onnx, threads=1)
     rows, cols, t, t_o = m_skip.layout
     assert (rows, cols) == (2, 3) and m_skip.width == 40
     aif = _scene(m_skip, seed=3)
     coc = np.zeros((m_skip.height, m_skip.width))
-    coc[:, 24:] = 0.8 * m_skip.max_coc_px  # tile column 0's window (x < 20) is all in focus
+    coc[:, 24:] = 0.8 * m_skip.contract.max_coc_px  # tile column 0's window (x < 20) is all in focus
     coc[:, 10:24] = 0.3  # below the 0.5 px threshold
     full, skip = m_full.render_coc(aif, coc), m_skip.render_coc(aif, coc)
     assert m_full.last_tiles_run == 6 and m_skip.last_tiles_run == 4
@@ -116,12 +114,12 @@ def test_in_focus_tiles_are_skipped_and_defocused_ones_unchanged(which, request)
 
 
 def test_bands_no_pixel_of_a_tile_uses_are_left_out_exactly(busy_onnx, busy_checkpoint):
-    m_full = BokehModel(busy_onnx, threads=1, skip_in_focus=False)
-    m_skip = BokehModel(busy_onnx, threads=1)
+    m_full = OnnxBokeh(busy_onnx, threads=1, skip_in_focus=False)
+    m_skip = OnnxBokeh(busy_onnx, threads=1)
     blocks = m_skip.meta["model_config"]["blocks"]
     aif = _scene(m_skip, seed=5)
     g = np.random.default_rng(2)
-    coc = g.uniform(-1.0, 1.0, (m_skip.height, m_skip.width)) * m_skip.max_coc_px / 3  # a third of the range
+    coc = g.uniform(-1.0, 1.0, (m_skip.height, m_skip.width)) * m_skip.contract.max_coc_px / 3  # a third of the range
     full, skip = m_full.render_coc(aif, coc), m_skip.render_coc(aif, coc)
     assert m_full.last_bands_run == m_skip.num_tiles * blocks * 2
     assert 0 < m_skip.last_bands_run <= m_skip.num_tiles * 2 * (blocks // 3 + 2)
@@ -134,7 +132,7 @@ def test_active_bands_hold_every_band_the_network_uses(busy_onnx, busy_checkpoin
     from neuralbokeh.networks.lens import _gate, band_diameters, band_position
     from neuralbokeh.ops.tiles import tile
 
-    m = BokehModel(busy_onnx, threads=1)
+    m = OnnxBokeh(busy_onnx, threads=1)
     model, _ = load_model(busy_checkpoint)
     cfg = model.config
     d = band_diameters(model.c_max, cfg.blocks)
@@ -142,7 +140,7 @@ def test_active_bands_hold_every_band_the_network_uses(busy_onnx, busy_checkpoin
     levels = np.concatenate([d, (d[1:] + d[:-1]) / 2, d + 1e-7, d - 1e-7, [0.0, 0.5]])
     coc = g.choice(levels, (2, m.height, m.width)) * g.choice([-1.0, 1.0], (2, m.height, m.width))
     flags = m.active_bands(coc)
-    c = tile(torch.from_numpy(coc[:, None] / model.c_max).float(), cfg.layout) * model.c_max  # (B, T, win, win)
+    c = tile(torch.from_numpy(coc[:, None] / model.c_max).float(), model.layout) * model.c_max  # (B, T, win, win)
     pos = band_position(c, model.c_max, cfg.blocks)
     for n in range(1, cfg.blocks + 1):
         for side, sel in enumerate((c > 0, c < 0)):
@@ -153,8 +151,8 @@ def test_active_bands_hold_every_band_the_network_uses(busy_onnx, busy_checkpoin
 
 
 def test_runtime_imports_no_torch(busy_onnx):
-    code = ("import sys, numpy as np; from neuralbokeh.runtime import BokehModel; "
-            f"m = BokehModel(r'{busy_onnx}', threads=1); "
+    code = ("import sys, numpy as np; from neuralbokeh.runtime import OnnxBokeh; "
+            f"m = OnnxBokeh(r'{busy_onnx}', threads=1); "
             "m.render_coc(np.full((m.height, m.width, 3), 0.2, np.float32), np.zeros((m.height, m.width))); "
             "assert 'torch' not in sys.modules, 'torch was imported'")
     subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)
@@ -171,4 +169,4 @@ def test_a_foreign_onnx_file_is_refused(tmp_path):
     m.ir_version = 9
     onnx.save(m, tmp_path / "x.onnx")
     with pytest.raises(ValueError, match="not exported by neuralbokeh"):
-        BokehModel(tmp_path / "x.onnx")
+        OnnxBokeh(tmp_path / "x.onnx")

@@ -11,10 +11,13 @@ import numpy as np
 import pytest
 import torch
 
-from neuralbokeh.export.exporter import export_checkpoint, probe_inputs, run_session, session
+from neuralbokeh.export.exporter import export_checkpoint, probe_inputs, run_session
+from neuralbokeh.runtime.onnx_model import make_session as session
 from neuralbokeh.networks import ModelConfig, build_model
+from neuralbokeh.core.contract import Contract
 from neuralbokeh.core.normalization import Normalization
-from neuralbokeh.training import load_model
+from neuralbokeh.core.optics import ThinLens
+from neuralbokeh.checkpoint import load_model
 from neuralbokeh.checkpoint import save_checkpoint
 
 TOLERANCE = {False: 1e-4, True: 2e-2}
@@ -22,9 +25,9 @@ TOLERANCE = {False: 1e-4, True: 2e-2}
 
 def _random_checkpoint(path, height, width, architecture, blocks=3):
     torch.manual_seed(height * 1000 + width)
-    cfg = ModelConfig(image_height=height, image_width=width, blocks=blocks, features=4, tile=16, overlap=4,
-                      architecture=architecture, coc_scale_px=7.0)
-    model = build_model(cfg)
+    cfg = ModelConfig(blocks=blocks, features=4, tile=16, overlap=4, architecture=architecture)
+    contract = Contract(height, width, Normalization(), 7.0, 7.0, ThinLens(50.0, 2.0, 36.0))
+    model = build_model(cfg, contract)
     with torch.no_grad():
         for name, p in model.named_parameters():
             if name.startswith("c2.") or ".conv_b." in name:
@@ -32,9 +35,7 @@ def _random_checkpoint(path, height, width, architecture, blocks=3):
             elif name == "pupil_tile":
                 p.add_(1.5 * torch.randn_like(p))
     save_checkpoint(path, {"model_config": cfg.to_dict(), "model_state": model.state_dict(),
-                           "lens": {"focal_length_mm": 50.0, "f_number": 2.0, "sensor_width_mm": 36.0},
-                           "aperture": None, "normalization": Normalization().to_dict(),
-                           "coc_scale_px": 7.0, "max_coc_px": 7.0, "step": 0})
+                           "contract": contract.to_dict(), "step": 0})
     return path
 
 
@@ -60,7 +61,7 @@ def test_extreme_cases_are_finite_bounded_and_within_parity(checkpoint, fp16, ke
     scales = {int(k[4:]): v["scale"] for k, v in report["kernels"].items()} if cfg.architecture == "lens" else None
     sess = session(str(tmp_path / "m.onnx"), threads=1)
     norm = Normalization()
-    for name, (aif, coc) in probe_inputs(cfg.image_height, cfg.image_width).items():
+    for name, (aif, coc) in probe_inputs(*model.contract.size).items():
         assert report["parity"][name] <= TOLERANCE[fp16], name
         with torch.no_grad():
             x = torch.from_numpy(np.concatenate([aif, coc], axis=1))
@@ -76,8 +77,7 @@ def test_extreme_cases_are_finite_bounded_and_within_parity(checkpoint, fp16, ke
 
 def test_pytorch_model_refuses_nan_and_inf_inputs(busy_checkpoint):
     model, _ = load_model(busy_checkpoint)
-    cfg = model.config
-    x = torch.zeros(1, 4, cfg.image_height, cfg.image_width)
+    x = torch.zeros(1, 4, *model.contract.size)
     for bad in (float("nan"), float("inf")):
         x[0, 1, 3, 5] = bad
         with pytest.raises(ValueError, match=r"model input must be finite, got (nan|inf) at pixel \(3, 5\)"):

@@ -1,3 +1,4 @@
+import dataclasses
 import json
 import os
 import subprocess
@@ -7,9 +8,13 @@ from pathlib import Path
 import pytest
 import torch
 
+from neuralbokeh.checkpoint import load_model
+from neuralbokeh.core.contract import Contract
+from neuralbokeh.core.normalization import Normalization
 from neuralbokeh.networks.config import ModelConfig
-from neuralbokeh.training import load_config, load_model, train
+from neuralbokeh.training import load_config, train
 from neuralbokeh.training import loop as loop_module
+from neuralbokeh.training.config import build_config
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -53,7 +58,7 @@ def test_shipped_configs_load_and_ablations_differ_as_named():
     paper = load_config(ROOT / "configs" / "paper.toml")
     assert (paper.model.tile, paper.model.overlap) == (200, 60)
     expected = {
-        "fixed3_kernels": ("model", "kernels", "fixed3"),
+        "fixed3_kernels": ("model", "kernel_sizes", "fixed3"),
         "no_tiling": ("model", "tiling", "none"),
         "no_overlap": ("model", "tiling", "no_overlap"),
         "tile_loss": ("train", "loss", "tile"),
@@ -101,10 +106,12 @@ def test_train_writes_checkpoint_log_and_metrics(tiny_dataset, tmp_path):
     summary = train(cfg, progress=False)
     ck_path = Path(summary["checkpoint"])
     model, ck = load_model(ck_path)
-    assert isinstance(model.config, ModelConfig) and model.config.image_height == 32 and model.config.image_width == 40
+    assert isinstance(model.config, ModelConfig) and model.contract.size == (32, 40)
     assert ck["model_config"]["blocks"] == 4  # max |CoC| 8.0 px -> N = 4
-    assert ck["lens"]["focal_length_mm"] == 85.0 and ck["aperture"]["cat_eye"] == 0.5
-    assert ck["normalization"]["kind"] == "mobius-log" and ck["coc_scale_px"] > 1
+    contract = ck["contract"]
+    assert contract["lens"]["focal_length_mm"] == 85.0 and contract["aperture"]["cat_eye"] == 0.5
+    assert contract["normalization"]["kind"] == "mobius-log" and contract["coc_scale_px"] > 1
+    assert Contract.from_dict(contract) == model.contract
     m = summary["metrics"]
     for key in ("eval_psnr", "eval_ssim", "identity_psnr", "gaussian_psnr", "gaussian_ssim"):
         assert key in m and m[key] == m[key]  # present and not NaN
@@ -129,7 +136,7 @@ def test_resume_continues_bit_for_bit(tiny_dataset, tmp_path):
 def test_resume_refuses_another_model(tiny_dataset, tmp_path):
     first = train(_config(tmp_path / "a", tiny_dataset, steps=2), progress=False)
     other = _config(tmp_path / "b", tiny_dataset, steps=4)
-    other.model.features = 5
+    other.model = dataclasses.replace(other.model, features=5)
     with pytest.raises(ValueError, match="checkpoint .* is for model"):
         train(other, resume=first["checkpoint"], progress=False)
 
@@ -185,24 +192,21 @@ def test_time_limit_stops_with_evaluation_and_checkpoint(tiny_dataset, tmp_path)
     assert torch.load(summary["checkpoint"], weights_only=False)["step"] == 1
 
 
-def test_model_section_mirrors_model_config():
-    # [model] is ModelConfig less what the data decides (image size, CoC scale, normalisation,
-    # aperture); a field added to one must be added to the other.
-    from dataclasses import fields
-
-    from neuralbokeh.training.config import ModelSection
-
-    section = {f.name for f in fields(ModelSection)}
-    from_data = {"image_height", "image_width", "coc_scale_px", "norm_scale", "norm_offset", "init_aperture"}
-    resolved = {f.name for f in fields(ModelConfig)} - from_data
-    assert section == resolved
+def test_model_table_is_the_model_config():
+    # [model] of a training config is ModelConfig itself: one class, "auto" blocks resolved from the data
+    cfg = build_config({"data": {"roots": ["x"]}, "model": {"blocks": "auto", "tile": 32, "overlap": 8}})
+    assert isinstance(cfg.model, ModelConfig) and cfg.model.blocks == "auto"
+    assert cfg.model.resolved(8.0).blocks == 4 and cfg.model.resolved(8.0).tile == 32
+    with pytest.raises(ValueError, match="model.tiling must be one of"):
+        build_config({"data": {"roots": ["x"]}, "model": {"tiling": "grid"}})
 
 
 def test_large_kernels_learn_at_lr_over_fan_in():
-    from neuralbokeh.networks.paper import NeuralBokeh
+    from neuralbokeh.networks.paper import PaperBokeh
     from neuralbokeh.training.loop import param_groups
 
-    model = NeuralBokeh(ModelConfig(image_height=16, image_width=16, blocks=3, features=2, tile=16, overlap=0, architecture="paper"))
+    model = PaperBokeh(ModelConfig(blocks=3, features=2, tile=16, overlap=0, architecture="paper"),
+                        Contract(16, 16, Normalization(), 1.0, 1.0))
     groups = param_groups(model, "fan_in")
     scales = {g["lr_scale"]: sum(p.numel() for p in g["params"]) for g in groups}
     assert set(scales) == {1.0, 1 / 9, 1 / 25, 1 / 49}  # 1x1 convs and biases at 1; k x k kernels at 1/k^2

@@ -27,8 +27,8 @@ from neuralbokeh.data.dataset import write_scene
 from neuralbokeh.core.io import read_image
 from neuralbokeh.core.optics import ThinLens, focus_sweep_m
 
-from .render import METHODS, choose_method, render_aif, render_defocus, render_depth
-from .scenes import Camera, SceneParams, camera_from_xml, fov_for_lens, procedural_scene
+from .render import METHODS, choose_method, render_aif, mitsuba_defocus, render_depth
+from .scenes import Camera, MitsubaSceneParams, camera_from_xml, fov_for_lens, procedural_scene
 
 log = logging.getLogger("data_tools.mitsuba")
 
@@ -80,7 +80,7 @@ def render_one(mi: Any, index: int, opts: dict[str, Any], xml_scene: Any = None)
     focus = opts["focus"] or scene_focus(depth, opts["slices"], lens)
     defocus, cocs, slices = [], [], []
     for k, f in enumerate(focus):
-        res = render_defocus(mi, scene, camera, lens, aperture, f, opts["spp"], opts["method"], opts["noise_target"],
+        res = mitsuba_defocus(mi, scene, camera, lens, aperture, f, opts["spp"], opts["method"], opts["noise_target"],
                              opts["rounds"], seed=seed + 7919 * (k + 1), unit_m=opts["unit_m"])
         defocus.append(res.image)
         cocs.append(lens.coc_px(depth, f, camera.width, signed=True))
@@ -166,7 +166,7 @@ def main(argv: list[str] | None = None) -> int:
             sensor_width = args.sensor_width
             indices = shard_indices(args.scenes, shard)
         lens = ThinLens(args.focal_length, args.f_number, sensor_width)
-        params = SceneParams(near_m=args.near, far_m=args.far)
+        params = MitsubaSceneParams(near_m=args.near, far_m=args.far)
     except (ValueError, OSError, ImportError, RuntimeError) as e:  # RuntimeError: mitsuba's XML parser
         raise SystemExit(f"error: {e}")
     args.out.mkdir(parents=True, exist_ok=True)

@@ -106,7 +106,7 @@ def render_depth(mi: ModuleType, scene: Any, camera: Camera) -> np.ndarray:
 
 def lens_radius_m(lens: ThinLens, focus_m: float, camera: Camera) -> float:
     """Radius (m) of the scene-space lens that gives ``lens.coc_px`` in ``camera``."""
-    k = lens.coc_scale_px(focus_m, camera.width)  # px * mm
+    k = lens.coc_constant_pxmm(focus_m, camera.width)  # px * mm
     return k / 1000.0 * 2.0 * camera.tan_half_x / (2.0 * camera.width)
 
 
@@ -191,7 +191,7 @@ def choose_method(method: str, aperture: ApertureModel) -> str:
     return method if method != "auto" else ("thinlens" if plain_disk else "accumulate")
 
 
-def render_defocus(mi: ModuleType, scene: Any, camera: Camera, lens: ThinLens, aperture: ApertureModel, focus_m: float,
+def mitsuba_defocus(mi: ModuleType, scene: Any, camera: Camera, lens: ThinLens, aperture: ApertureModel, focus_m: float,
                    spp: int, method: str = "auto", noise_target: float | None = None, rounds: int = 4,
                    seed: int = 0, unit_m: float = 1.0) -> SliceResult:
     """One defocused slice focused at ``focus_m`` (planar, m).

@@ -55,7 +55,7 @@ def axis_camera(mi: ModuleType, focal_length_mm: float, sensor_width_mm: float, 
 
 
 @dataclass(frozen=True)
-class SceneParams:
+class MitsubaSceneParams:
     """Ranges of the procedural scenes (depths in m)."""
 
     near_m: float = 0.7
@@ -94,7 +94,7 @@ def _in_view(rng: np.random.Generator, camera: Camera, depth: float, margin: flo
     return float(rng.uniform(-tx, tx) * depth), float(rng.uniform(-ty, ty) * depth)
 
 
-def procedural_scene(mi: ModuleType, rng: np.random.Generator, camera: Camera, params: SceneParams,
+def procedural_scene(mi: ModuleType, rng: np.random.Generator, camera: Camera, params: MitsubaSceneParams,
                      max_depth: int = 4, planar: bool = False) -> tuple[dict[str, Any], dict[str, Any]]:
     """A random scene: textured rectangles (some tilted), spheres and boxes spread over depth
     (log-uniform), small emissive spheres as HDR highlights, a textured back wall at the far

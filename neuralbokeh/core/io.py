@@ -8,9 +8,12 @@ never leaves a half-written file under the final name.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+import shutil
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -31,11 +34,48 @@ def default_mode(directory: bool = False) -> int:
     return (0o777 if directory else 0o666) & ~_umask()
 
 
-def _temp_path(path: Path) -> Path:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
+@contextlib.contextmanager
+def atomic_write(path: str | os.PathLike) -> Iterator[Path]:
+    """``with atomic_write(path) as tmp:`` write ``tmp`` (any writer: ``torch.save``,
+    ``onnx.save``, ``open``); on leaving the block it is renamed over ``path``. If the block
+    raises, ``tmp`` is removed and ``path`` is untouched: never a half-written file under the
+    final name. ``tmp`` lies in ``path``'s folder (which must exist), keeps its extension and
+    has the permissions a plain ``open`` would give."""
+    path = Path(path)
+    fd, name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
     os.close(fd)
+    tmp = Path(name)
     os.chmod(tmp, default_mode())  # mkstemp makes 0600 files
-    return Path(tmp)
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
+@contextlib.contextmanager
+def atomic_directory(path: str | os.PathLike) -> Iterator[Path]:
+    """``with atomic_directory(folder) as tmp:`` fill the temporary folder ``tmp``; on leaving the
+    block it is renamed to ``folder`` (which must not exist), so the folder appears complete or
+    not at all. If the block raises, ``tmp`` is removed. The parent folder is created."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent))
+    try:
+        yield tmp
+        os.chmod(tmp, default_mode(directory=True))  # mkdtemp makes 0700 folders
+        os.rename(tmp, path)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def write_text(path: str | os.PathLike, text: str) -> Path:
+    """Write a text file atomically (see :func:`atomic_write`)."""
+    with atomic_write(path) as tmp:
+        tmp.write_text(text)
+    return Path(path)
 
 
 def write_image(
@@ -87,8 +127,7 @@ def write_image(
         spec.attribute("compression", "zip")
     for key, value in (attributes or {}).items():
         spec.attribute(key, value)
-    tmp = _temp_path(path)
-    try:
+    with atomic_write(path) as tmp:
         out = oiio.ImageOutput.create(str(tmp))
         if out is None:
             raise OSError(f"cannot write {path}: {oiio.geterror()}")
@@ -97,10 +136,6 @@ def write_image(
             out.close()
             raise OSError(f"cannot write {path}: {msg}")
         out.close()
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
     return path
 
 
@@ -138,15 +173,7 @@ def read_image(path: str | os.PathLike, with_attributes: bool = False) -> Any:
 
 def write_json(path: str | os.PathLike, data: Any) -> Path:
     """Write JSON atomically (indented, keys in given order; ``inf`` written as ``Infinity``)."""
-    path = Path(path)
-    tmp = _temp_path(path)
-    try:
-        tmp.write_text(json.dumps(data, indent=2) + "\n")
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-    return path
+    return write_text(path, json.dumps(data, indent=2) + "\n")
 
 
 def read_json(path: str | os.PathLike) -> Any:

@@ -76,7 +76,7 @@ class ThinLens:
         d_f = focus_m * MM_PER_M
         return f * d_f / (d_f - f)
 
-    def coc_scale_px(self, focus_m: float, image_width_px: int) -> float:
+    def coc_constant_pxmm(self, focus_m: float, image_width_px: int) -> float:
         """K = (w_i / w_s) a d_s in px*mm: the CoC is K (1/d_f - 1/d_p) with distances in mm."""
         if int(image_width_px) != image_width_px or image_width_px <= 0:
             raise ValueError(f"image_width_px must be a positive integer, got {image_width_px!r}")
@@ -103,7 +103,7 @@ class ThinLens:
             ValueError: a depth is <= 0, NaN or -inf (the message gives the number of bad
                 pixels and the first location), or the focus distance is invalid.
         """
-        k = self.coc_scale_px(focus_m, image_width_px)
+        k = self.coc_constant_pxmm(focus_m, image_width_px)
         inv_focus = 1.0 / (float(focus_m) * MM_PER_M)
         scalar = isinstance(depth_m, (int, float))
         if scalar:

@@ -15,12 +15,11 @@ scene folder either is whole or does not exist (tools can resume by skipping exi
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 import os
 import random
-import shutil
-import tempfile
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -29,7 +28,8 @@ import torch
 
 from ..core.apertures import ApertureModel
 from ..core.checks import check_finite, check_nonnegative, check_positive, check_shape
-from ..core.io import default_mode, read_image, read_json, write_image, write_json
+from ..core.contract import Contract
+from ..core.io import atomic_directory, read_image, read_json, write_image, write_json
 from ..core.normalization import Normalization
 from ..core.optics import ThinLens
 
@@ -115,9 +115,7 @@ def write_scene(
         "generator": generator,
         "units": UNITS,
     }
-    folder.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", suffix=".tmp", dir=folder.parent))
-    try:
+    with atomic_directory(folder) as tmp:
         rgb = ["R", "G", "B"]
         write_image(tmp / "aif.exr", aif, channel_names=rgb)
         write_image(tmp / "depth.exr", depth_m, channel_names=["Z"], attributes={"neuralbokeh:units": "m"})
@@ -125,11 +123,6 @@ def write_scene(
             write_image(tmp / f"defocus_{i}.exr", img, channel_names=rgb)
             write_image(tmp / f"coc_{i}.exr", coc, channel_names=["Y"], attributes={"neuralbokeh:units": "px"})
         write_json(tmp / "scene.json", meta)
-        os.chmod(tmp, default_mode(directory=True))  # mkdtemp makes 0700 folders
-        os.rename(tmp, folder)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return folder
 
 
@@ -277,6 +270,24 @@ class FocalStackDataset(torch.utils.data.Dataset):
 
     def __len__(self) -> int:
         return len(self.items)
+
+    def shared(self, key: str) -> Any:
+        """A ``scene.json`` entry (``"lens"``, ``"aperture"``, ``"image_size"``) that every scene
+        of this split must share (one model learns one lens at one size).
+
+        Raises:
+            ValueError: the scenes differ, with the values found.
+        """
+        values = {json.dumps(m[key], sort_keys=True) for m in self.metas}
+        if len(values) != 1:
+            raise ValueError(f"all scenes of one model must share {key!r}; found {len(values)} different ones: {sorted(values)}")
+        return self.metas[0][key]
+
+    def contract(self) -> Contract:
+        """The data contract a model trained on this split keeps (:class:`Contract`)."""
+        size, lens = self.shared("image_size"), self.shared("lens")
+        return Contract(int(size["height"]), int(size["width"]), self.normalization, self.coc_scale_px, self.max_coc_px,
+                        ThinLens.from_dict(lens) if lens else None, self.shared("aperture"))
 
     def __getitem__(self, index: int) -> dict[str, Any]:
         i, k = self.items[index]

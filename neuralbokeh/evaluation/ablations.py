@@ -20,8 +20,8 @@ from pathlib import Path
 from typing import Any
 
 from ..data.dataset import FocalStackDataset
-from .evaluate import evaluate, model_method
-from ..core.io import write_json
+from .evaluate import evaluate_methods, model_method
+from ..core.io import write_json, write_text
 from ..training.config import load_config
 from ..training.loop import train
 
@@ -30,7 +30,7 @@ log = logging.getLogger(__name__)
 VARIANTS: dict[str, list[str]] = {
     "full": [],
     "paper": ["model.architecture='paper'", "train.lr=1e-3"],
-    "fixed3_kernels": ["model.kernels='fixed3'"],
+    "fixed3_kernels": ["model.kernel_sizes='fixed3'"],
     "no_tiling": ["model.tiling='none'"],
     "no_overlap": ["model.tiling='no_overlap'"],
     "tile_loss": ["train.loss='tile'"],
@@ -54,7 +54,7 @@ def run_ablations(config: Path, data: Path, out: Path, minutes: float, overrides
         summary = train(cfg, time_limit_s=60.0 * minutes if minutes > 0 else None, overwrite=True)
         ds = FocalStackDataset(cfg.data.roots, "test", cfg.data.test_fraction, cfg.data.split_seed, normalize=False)
         n = len(ds) if samples <= 0 else min(samples, len(ds))
-        result = evaluate({name: model_method(Path(summary["checkpoint"]), threads)}, [ds[i] for i in range(n)], repeats=1)
+        result = evaluate_methods({name: model_method(Path(summary["checkpoint"]), threads)}, [ds[i] for i in range(n)], repeats=1)
         m = result["methods"][name]
         rows.append({"variant": name, "label": LABELS[name], "steps": summary["steps"], "seconds": summary["seconds"],
                      "psnr_srgb": m["psnr_srgb"], "ssim_srgb": m["ssim_srgb"], "flip_hdr": m["flip_hdr"],
@@ -63,9 +63,7 @@ def run_ablations(config: Path, data: Path, out: Path, minutes: float, overrides
     write_json(out / "table.json", rows)
     lines = ["| Design | steps | PSNR (sRGB) dB | SSIM (sRGB) | HDR-FLIP |", "|---|---|---|---|---|"]
     lines += [f"| {r['label']} | {r['steps']} | {r['psnr_srgb']:.2f} | {r['ssim_srgb']:.4f} | {r['flip_hdr']:.4f} |" for r in rows]
-    tmp = out / ".table.md.tmp"
-    tmp.write_text("\n".join(lines) + "\n")
-    tmp.replace(out / "table.md")
+    write_text(out / "table.md", "\n".join(lines) + "\n")
     return rows
 
 

@@ -42,9 +42,9 @@ from ..core.apertures import ApertureModel
 from ..core.cli import HelpFormatter
 from ..data.dataset import FocalStackDataset
 from ..data.check import require_sound
-from ..core.io import write_json
+from ..core.io import atomic_write, write_json, write_text
 from .metrics import image_metrics, pareto_front, tonemap_srgb
-from ..core.normalization import Normalization
+from ..core.contract import Contract
 from ..render import scatter_defocus
 from ..render.baselines import gather_defocus, gaussian_defocus, pseudo_ray_trace
 from ..render.buckets import bucket_gather
@@ -101,24 +101,24 @@ def load_model_method(path: Path, threads: int) -> LoadedModel:
     """A trained model: ``.onnx`` (onnxruntime, in-focus tiles and unused bands skipped; its
     metadata read once by the runtime) or a ``.pt`` checkpoint (read once)."""
     if path.suffix == ".onnx":
-        from ..runtime.onnx_model import BokehModel
+        from ..runtime.onnx_model import OnnxBokeh
 
-        m = BokehModel(path, threads=threads)
+        m = OnnxBokeh(path, threads=threads)
         return LoadedModel(lambda aif, coc: m.render_coc(aif, coc), (m.height, m.width), m.meta.get("data_split"))
     from ..checkpoint import load_model
 
     model, ckpt = load_model(path)
-    cfg = model.config
-    norm, scale = Normalization.from_dict(ckpt["normalization"]), float(ckpt["coc_scale_px"])
+    contract: Contract = model.contract
     data = ckpt.get("train_config", {}).get("data")
 
-    def run(aif: np.ndarray, coc: np.ndarray) -> np.ndarray:
-        x = np.concatenate([norm.encode(aif.astype(np.float64)).transpose(2, 0, 1), coc[None] / scale])
+    def network(x: np.ndarray) -> np.ndarray:
         with torch.no_grad():
-            y = model(torch.from_numpy(x[None]).float())[0].double().numpy()
-        return norm.decode(y).transpose(1, 2, 0)
+            return model(torch.from_numpy(x).float()).double().numpy()
+
+    def run(aif: np.ndarray, coc: np.ndarray) -> np.ndarray:
+        return contract.apply(network, aif.astype(np.float64).transpose(2, 0, 1)[None], coc[None, None])[0].transpose(1, 2, 0)
     split = {k: data[k] for k in ("test_fraction", "split_seed")} if data else None
-    return LoadedModel(run, (cfg.image_height, cfg.image_width), split)
+    return LoadedModel(run, contract.size, split)
 
 
 def model_method(path: Path, threads: int) -> Method:
@@ -149,7 +149,7 @@ def _median_ms(fn: Callable[[], Any], repeats: int) -> tuple[float, Any]:
     return statistics.median(times), out
 
 
-def evaluate(methods: dict[str, Method], samples: list[dict], repeats: int = 3, progress: bool = False) -> dict[str, Any]:
+def evaluate_methods(methods: dict[str, Method], samples: list[dict], repeats: int = 3, progress: bool = False) -> dict[str, Any]:
     """Metrics and time per method; ``samples`` are linear items of a ``FocalStackDataset``
     (``normalize=False``). Returns ``{"methods": {name: {...}}, "predictions": {name: [...]}}``.
     ``progress``: a tqdm bar over (method, sample) runs (the CLI's)."""
@@ -202,9 +202,7 @@ def write_report(out: Path, result: dict[str, Any], samples: list[dict], info: d
     for n in names:
         m = methods[n]
         lines.append(f"| {n} | " + " | ".join(f"{m[c]:.4f}" if "ssim" in c or "flip" in c else f"{m[c]:.2f}" for c in cols) + " |")
-    tmp = out / ".report.md.tmp"
-    tmp.write_text("\n".join(lines) + "\n")
-    tmp.replace(out / "report.md")
+    write_text(out / "report.md", "\n".join(lines) + "\n")
     written.append(out / "report.md")
 
     points = [(max(methods[n]["ms_per_mp"], 1e-3), methods[n]["flip_hdr"]) for n in names]
@@ -222,10 +220,9 @@ def write_report(out: Path, result: dict[str, Any], samples: list[dict], info: d
     ax.set_ylabel("mean HDR-FLIP (lower is better)")
     ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.02, 0.5), frameon=False)
     fig.tight_layout()
-    tmp = out / ".error_vs_runtime.png.tmp.png"
-    fig.savefig(tmp, dpi=120, bbox_inches="tight")
+    with atomic_write(out / "error_vs_runtime.png") as tmp:
+        fig.savefig(tmp, dpi=120, bbox_inches="tight")
     plt.close(fig)
-    tmp.replace(out / "error_vs_runtime.png")
     written.append(out / "error_vs_runtime.png")
 
     ref = names[0]
@@ -266,10 +263,9 @@ def _grid(plt: Any, out: Path, label: str, ref: str, it: dict, names: list[str],
     fig.suptitle(f"{label} sample by {ref}'s HDR-FLIP: {it['scene']} slice {it['slice']} (PSNR: tone-mapped sRGB, dB; FLIP: HDR-FLIP)", fontsize=8)
     fig.tight_layout()
     path = out / f"grid_{label}.png"
-    tmp = out / f".grid_{label}.png.tmp.png"
-    fig.savefig(tmp, dpi=130)
+    with atomic_write(path) as tmp:
+        fig.savefig(tmp, dpi=130)
     plt.close(fig)
-    tmp.replace(path)
     return path
 
 
@@ -317,7 +313,7 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit(f"error: {e}")
     log.info("scoring %d sample(s) of split %r (test_fraction %s, split_seed %d) with %d method(s)", n, args.split,
              test_fraction, split_seed, len(methods))
-    result = evaluate(methods, samples, args.repeats, progress=True)
+    result = evaluate_methods(methods, samples, args.repeats, progress=True)
     info = {"data": str(args.data), "split": args.split, "test_fraction": test_fraction, "split_seed": split_seed,
             "samples": n, "threads": args.threads, "repeats": args.repeats,
             "aperture": ds.metas[0]["aperture"] if aperture else None}

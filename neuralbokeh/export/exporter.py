@@ -6,7 +6,6 @@ import copy
 import json
 import logging
 import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -16,19 +15,18 @@ import onnxruntime as ort
 import torch
 
 from .. import __version__
-from ..core.io import default_mode
-from ..networks.lens import band_scales, reduce_kernel
-from ..networks.paper import NeuralBokeh
-from ..core.normalization import Normalization
 from ..checkpoint import load_model
+from ..core.io import atomic_write
+from ..core.normalization import Normalization
+from ..networks.lens import band_scales, reduce_kernel
+from ..networks.paper import PaperBokeh
+from ..runtime.onnx_model import FORMAT, FORMAT_VERSION, METADATA_KEY, make_session
 from .graph import build_graph
 from .lens_graph import LENS_DEFAULT_KERNELS, build_lens_graph, parse_lens_kernels
 from .lowrank import DEFAULT_KERNELS, cheaper_ranks, factorize, parse_kernels, reconstruct, relative_error
 
 log = logging.getLogger(__name__)
 
-METADATA_KEY = "neuralbokeh"
-METADATA_VERSION = 1
 # Max abs parity error (normalised units, outputs in (-1, 1)) above which the export fails.
 DEFAULT_TOLERANCE = {False: 1e-4, True: 2e-2}
 
@@ -60,7 +58,7 @@ def calibration_inputs(height: int, width: int, count: int = 2, seed: int = 0) -
     return torch.from_numpy(np.concatenate([aif, coc], axis=1).astype(np.float32))
 
 
-def plan_factors(model: NeuralBokeh, kernels: str, calibration: torch.Tensor | None = None,
+def plan_factors(model: PaperBokeh, kernels: str, calibration: torch.Tensor | None = None,
                  ) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]], dict[str, Any]]:
     """Separable factors per convolution under a ``--kernels`` spec, and a per-conv report.
 
@@ -73,8 +71,7 @@ def plan_factors(model: NeuralBokeh, kernels: str, calibration: torch.Tensor | N
              for part in ("conv_a", "conv_b")]
     budget = plan.tolerance / max(len(convs), 1) ** 0.5
     if plan.mode == "auto":
-        cfg = model.config
-        x = calibration if calibration is not None else calibration_inputs(cfg.image_height, cfg.image_width)
+        x = calibration if calibration is not None else calibration_inputs(*model.contract.size)
         with torch.no_grad():
             base = model(x)
 
@@ -113,7 +110,7 @@ def plan_factors(model: NeuralBokeh, kernels: str, calibration: torch.Tensor | N
     return factors, report
 
 
-def lowrank_reference(model: NeuralBokeh, factors: dict[str, tuple[np.ndarray, np.ndarray]]) -> NeuralBokeh:
+def lowrank_reference(model: PaperBokeh, factors: dict[str, tuple[np.ndarray, np.ndarray]]) -> PaperBokeh:
     """A copy of ``model`` whose factorised kernels are replaced by what their factors represent:
     the PyTorch function the ONNX graph must match."""
     ref = copy.deepcopy(model).eval()
@@ -147,15 +144,6 @@ def probe_inputs(height: int, width: int, seed: int = 0) -> dict[str, tuple[np.n
         "highlights_1e4_edge": (highlights, edge),
     }
     return {k: (a.astype(np.float32), c.astype(np.float32)) for k, (a, c) in cases.items()}
-
-
-def session(path_or_bytes: str | bytes, threads: int | None = None) -> ort.InferenceSession:
-    """A CPU onnxruntime session (``threads`` intra-op threads; None: onnxruntime's default)."""
-    so = ort.SessionOptions()
-    if threads:
-        so.intra_op_num_threads = threads
-        so.inter_op_num_threads = 1
-    return ort.InferenceSession(path_or_bytes, so, providers=["CPUExecutionProvider"])
 
 
 def run_session(sess: ort.InferenceSession, aif: np.ndarray, coc: np.ndarray,
@@ -218,11 +206,8 @@ def export_checkpoint(
         factors, kernel_report = plan_factors(model, kernels)
         weights = {k: v.detach().numpy() for k, v in model.state_dict().items()}
     meta = {
-        "format": "neuralbokeh-onnx", "format_version": METADATA_VERSION, "package_version": __version__,
-        "model_config": cfg.to_dict(), "layout": list(cfg.layout), "num_tiles": cfg.num_tiles,
-        "blocks": cfg.blocks, "image_size": {"height": cfg.image_height, "width": cfg.image_width},
-        "lens": ckpt.get("lens"), "aperture": ckpt.get("aperture"), "normalization": ckpt["normalization"],
-        "coc_scale_px": float(ckpt["coc_scale_px"]), "max_coc_px": float(ckpt["max_coc_px"]),
+        "format": FORMAT, "format_version": FORMAT_VERSION, "package_version": __version__,
+        "model_config": cfg.to_dict(), "contract": model.contract.to_dict(), "layout": list(model.layout),
         "kernels": kernels, "kernel_ranks": {k: v["rank"] for k, v in kernel_report.items()},
         "fp16": fp16, "opset": opset, "source_checkpoint": Path(checkpoint).name,
         "trained_steps": ckpt.get("step"),
@@ -233,11 +218,10 @@ def export_checkpoint(
     if lens:
         with torch.no_grad():
             band_kernels = {n: reduce_kernel(model.kernels(n).double(), scales[n]).numpy() for n in range(1, cfg.blocks + 1)}
-        onnx_model = build_lens_graph(band_kernels, model.source_mask[:, 0].numpy(), model.diameters, cfg.to_dict(),
-                                      cfg.layout, fp16, opset, props, scales)
+        onnx_model = build_lens_graph(band_kernels, model.diameters, cfg, model.contract, fp16, opset, props, scales)
     else:
-        onnx_model = build_graph(weights, cfg.to_dict(), cfg.layout, factors, fp16, opset, props)
-    sess = session(onnx_model.SerializeToString(), threads)
+        onnx_model = build_graph(weights, cfg, model.contract, factors, fp16, opset, props)
+    sess = make_session(onnx_model.SerializeToString(), threads)
     if lens:
         approximate = any(s > 1 for s in scales.values())
 
@@ -248,7 +232,7 @@ def export_checkpoint(
         reference = lowrank_reference(model, factors) if factors else model
     parity, approx = {}, {}
     with torch.no_grad():
-        for name, (aif, coc) in probe_inputs(cfg.image_height, cfg.image_width).items():
+        for name, (aif, coc) in probe_inputs(*model.contract.size).items():
             got = run_session(sess, aif, coc)
             x = torch.from_numpy(np.concatenate([aif, coc], axis=1))
             want = reference(x).numpy()
@@ -262,14 +246,7 @@ def export_checkpoint(
         raise ValueError(f"ONNX and PyTorch differ by up to {worst:.3g} (> tolerance {tolerance:g}) per case {parity}; not written")
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent)
-    os.close(fd)
-    try:
+    with atomic_write(out) as tmp:
         onnx.save(onnx_model, tmp)
-        os.chmod(tmp, default_mode())
-        os.replace(tmp, out)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
     return {"path": str(out), "parity": parity, "tolerance": tolerance, "approximation": approx,
             "kernels": kernel_report, "metadata": meta}

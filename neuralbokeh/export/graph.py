@@ -32,12 +32,12 @@ import numpy as np
 import onnx
 from onnx import TensorProto, helper, numpy_helper
 
-from ..core.tiling import TileLayout
+from ..core.contract import Contract
+from ..networks.config import TANH_LIMIT, ModelConfig
 
-_TANH_LIMIT = 1.0 - 1e-6  # the same scale as neuralbokeh.networks.paper's identity head
 
 
-class _Builder:
+class GraphBuilder:
     def __init__(self, count: int = 0) -> None:
         self.initializers: list[onnx.TensorProto] = []
         self.names: set[str] = set()
@@ -55,7 +55,7 @@ class _Builder:
         return f"{stem}_{self.count}"
 
 
-def _conv(nodes: list, b: _Builder, x: str, weight: np.ndarray, bias: np.ndarray | None, name: str,
+def _conv(nodes: list, b: GraphBuilder, x: str, weight: np.ndarray, bias: np.ndarray | None, name: str,
           dtype: Any, groups: int, pads: list[int]) -> str:
     inputs = [x, b.const(f"{name}.w", weight, dtype)]
     if bias is not None:
@@ -65,7 +65,7 @@ def _conv(nodes: list, b: _Builder, x: str, weight: np.ndarray, bias: np.ndarray
     return out
 
 
-def _per_channel(nodes: list, b: _Builder, x: str, kernels: np.ndarray, bias: np.ndarray, name: str,
+def _per_channel(nodes: list, b: GraphBuilder, x: str, kernels: np.ndarray, bias: np.ndarray, name: str,
                  dtype: Any, factors: tuple[np.ndarray, np.ndarray] | None) -> str:
     """Depthwise 'same' convolution of ``(C, k, k)`` kernels, direct or as separable branches."""
     c, k, _ = kernels.shape
@@ -85,7 +85,7 @@ def _per_channel(nodes: list, b: _Builder, x: str, kernels: np.ndarray, bias: np
     return out
 
 
-def _tile_network(b: _Builder, k: int, window: str, rgb: str, weights: Mapping[str, np.ndarray], cfg: Mapping[str, Any],
+def _tile_network(b: GraphBuilder, k: int, window: str, rgb: str, weights: Mapping[str, np.ndarray], cfg: ModelConfig,
                   factors: Mapping[str, tuple[np.ndarray, np.ndarray]], fp16: bool) -> onnx.GraphProto:
     """The If-branch computing tile ``k``'s output from outer-scope ``window`` and ``rgb``.
 
@@ -93,8 +93,8 @@ def _tile_network(b: _Builder, k: int, window: str, rgb: str, weights: Mapping[s
     a depthwise convolution reading an outer-scope weight ran 4x slower than one whose weight
     lives in the branch.
     """
-    b = _Builder(b.count)
-    f = cfg["features"]
+    b = GraphBuilder(b.count)
+    f = cfg.features
     ch = slice(k * f, (k + 1) * f)
     trunk = np.float16 if fp16 else np.float32
     nodes: list = []
@@ -104,7 +104,7 @@ def _tile_network(b: _Builder, k: int, window: str, rgb: str, weights: Mapping[s
         x = b.fresh(f"{name}.in16")
         nodes.append(helper.make_node("Cast", [window], [x], to=TensorProto.FLOAT16, name=x))
     h = _conv(nodes, b, x, weights["c1.weight"][ch], weights["c1.bias"][ch], f"{name}.c1", trunk, 1, [0, 0, 0, 0])
-    for n in range(cfg["blocks"]):
+    for n in range(cfg.blocks):
         key = f"blocks.{n}"
         a = _per_channel(nodes, b, h, weights[f"{key}.conv_a.conv.weight"][ch, 0], weights[f"{key}.conv_a.conv.bias"][ch],
                          f"{name}.b{n}a", trunk, _tile_factors(factors, f"{key}.conv_a", ch))
@@ -126,9 +126,9 @@ def _tile_network(b: _Builder, k: int, window: str, rgb: str, weights: Mapping[s
     t = b.fresh(f"{name}.tanh")
     nodes.append(helper.make_node("Tanh", [c2], [t], name=t))
     out = f"{name}.net_out"
-    if cfg["head"] == "identity":
+    if cfg.head == "identity":
         ts = b.fresh(f"{name}.scaled")
-        nodes.append(helper.make_node("Mul", [t, b.const(f"{name}.limit", _TANH_LIMIT)], [ts], name=ts))
+        nodes.append(helper.make_node("Mul", [t, b.const(f"{name}.limit", TANH_LIMIT)], [ts], name=ts))
         num, prod, den = b.fresh(f"{name}.num"), b.fresh(f"{name}.prod"), b.fresh(f"{name}.den")
         nodes.append(helper.make_node("Add", [rgb, ts], [num], name=num))
         nodes.append(helper.make_node("Mul", [rgb, ts], [prod], name=prod))
@@ -168,15 +168,14 @@ def finish_model(nodes: list, initializers: list, name: str, size: tuple[int, in
     return model
 
 
-def build_graph(weights: Mapping[str, np.ndarray], cfg: Mapping[str, Any], layout: TileLayout,
+def build_graph(weights: Mapping[str, np.ndarray], cfg: ModelConfig, contract: Contract,
                 factors: Mapping[str, tuple[np.ndarray, np.ndarray]] | None = None, fp16: bool = False,
                 opset: int = 17, metadata: Mapping[str, str] | None = None) -> onnx.ModelProto:
     """The full-image ONNX model.
 
     Args:
-        weights: the network's state dict as float numpy arrays (``NeuralBokeh.state_dict()``).
-        cfg: its ``ModelConfig.to_dict()``.
-        layout: ``ModelConfig.layout``.
+        weights: the network's state dict as float numpy arrays (``PaperBokeh.state_dict()``).
+        cfg, contract: its config and data contract (the tile grid).
         factors: ``{"blocks.n.conv_a": (cols, rows)}`` separable factors ``(C, R, k)`` of the
             convolutions to factorise (all channels of all tiles); the others run direct.
         fp16: float16 trunk (see the module doc).
@@ -186,9 +185,10 @@ def build_graph(weights: Mapping[str, np.ndarray], cfg: Mapping[str, Any], layou
     if opset < 17:
         raise ValueError(f"opset must be >= 17, got {opset}")
     factors = factors or {}
-    h, w = cfg["image_height"], cfg["image_width"]
+    h, w = contract.size
+    layout = cfg.layout(h, w)
     (hp, wp), win, t_o = layout.padded_size, layout.window, layout.overlap
-    b = _Builder()
+    b = GraphBuilder()
     nodes = [helper.make_node("Concat", ["aif", "coc"], ["x"], axis=1, name="concat_input")]
     top, bottom, left, right = layout.pads(h, w)
     pads = [0, 0, top, left, 0, 0, bottom, right]

@@ -38,9 +38,11 @@ import numpy as np
 import onnx
 from onnx import TensorProto, helper
 
-from ..core.tiling import TileLayout
+from ..core.contract import Contract
+from ..core.normalization import Normalization
+from ..networks.config import ModelConfig
 from ..ops.holes import pyramid_levels
-from .graph import _Builder, finish_model
+from .graph import GraphBuilder, finish_model
 
 _EPS = 1e-8
 # Bands whose CoC stays >= 10 coarse px wide on a 2, 4 or 8 times coarser grid are convolved there
@@ -71,7 +73,7 @@ def parse_lens_kernels(spec: str) -> float:
 class _Nodes:
     """A list of nodes with a builder: ``op("Add", a, b)`` returns the output name."""
 
-    def __init__(self, b: _Builder, stem: str) -> None:
+    def __init__(self, b: GraphBuilder, stem: str) -> None:
         self.b, self.stem, self.nodes = b, stem, []
 
     def op(self, kind: str, *inputs: str, **attrs: Any) -> str:
@@ -93,16 +95,16 @@ def _branch(g: _Nodes, result: str, name: str) -> onnx.GraphProto:
     return helper.make_graph(g.nodes, name, [], [_out(final)], g.b.initializers)
 
 
-def _hidden_background(top: _Nodes, x: str, cfg: Mapping[str, Any]) -> str:
+def _hidden_background(top: _Nodes, x: str, contract: Contract) -> str:
     """``(B, 3, H, W)`` linear estimate of what foregrounds hide, as ``LensBokeh.hidden``:
     occluders by a separable max over ``2R + 1`` px (``R`` = half the largest CoC), then the
     pull-push fill of :func:`neuralbokeh.ops.holes.push_pull_fill` on the zero-padded
     ``2^L`` square (``AveragePool`` 2x2, ``Resize`` x2 half-pixel)."""
-    h, w = int(cfg["image_height"]), int(cfg["image_width"])
-    _, rgb = _linear_rgb(top, x, cfg)
+    h, w = contract.size
+    _, rgb = _linear_rgb(top, x, contract.normalization)
     coc = top.op("Mul", top.op("Slice", x, top.c("bg.s3", [3], np.int64), top.c("bg.s4", [4], np.int64), top.c("bg.ax1", [1], np.int64)),
-                 top.c("bg.coc_scale", float(cfg["coc_scale_px"])))
-    r = int(math.ceil(float(cfg["coc_scale_px"]) / 2.0))
+                 top.c("bg.coc_scale", float(contract.coc_scale_px)))
+    r = int(math.ceil(float(contract.coc_scale_px) / 2.0))
     if r == 0:
         return rgb  # nothing can hide anything: the fill is the AIF itself
     far = top.op("MaxPool", coc, kernel_shape=[1, 2 * r + 1], pads=[0, r, 0, r], strides=[1, 1])
@@ -130,22 +132,22 @@ def _hidden_background(top: _Nodes, x: str, cfg: Mapping[str, Any]) -> str:
                   top.c("bg.axes", [2, 3], np.int64))
 
 
-def _linear_rgb(g: _Nodes, window: str, cfg: Mapping[str, Any]) -> tuple[str, str]:
+def _linear_rgb(g: _Nodes, window: str, norm: Normalization) -> tuple[str, str]:
     """``(normalised RGB, linear RGB)`` of a window ``(B, 4, win, win)``: the exact inverse of
     the normalisation, ``x = s (1 + n) / (1 - n) - o``."""
     one = g.c("one", 1.0)
     norm_rgb = g.op("Slice", window, g.c("s0", [0], np.int64), g.c("s3", [3], np.int64), g.c("ax1", [1], np.int64))
-    rgb = g.op("Sub", g.op("Div", g.op("Mul", g.c("scale", cfg["norm_scale"]), g.op("Add", one, norm_rgb)),
-                           g.op("Sub", one, norm_rgb)), g.c("offset", cfg["norm_offset"]))
+    rgb = g.op("Sub", g.op("Div", g.op("Mul", g.c("scale", norm.scale), g.op("Add", one, norm_rgb)),
+                           g.op("Sub", one, norm_rgb)), g.c("offset", norm.offset))
     return norm_rgb, rgb
 
 
-def _band(b: _Builder, k: int, n: int, side: int, pos: str, side_mask: str, src_mask: str, rgb: str, c: str,
+def _band(b: GraphBuilder, k: int, n: int, side: int, pos: str, side_mask: str, src_mask: str, rgb: str, c: str,
           kernel: np.ndarray, scale: int, win: int, band_coc: float, margin: float, fp16: bool) -> onnx.GraphProto:
     """Then-branch: band ``n``'s 18-channel contribution (near, same, far) x (RGB, coverage),
     its convolution on a grid ``scale`` times coarser when ``scale > 1`` (``kernel`` is then
     the binned one, :func:`~neuralbokeh.networks.lens.reduce_kernel`)."""
-    g = _Nodes(_Builder(b.count), f"t{k}.n{n}s{side}")
+    g = _Nodes(GraphBuilder(b.count), f"t{k}.n{n}s{side}")
     one = g.c("one", 1.0)
     hat = g.op("Relu", g.op("Sub", one, g.op("Abs", g.op("Sub", pos, g.c(f"n{n}", float(n))))))
     gate = g.op("Mul", g.op("Mul", hat, src_mask), side_mask)
@@ -178,16 +180,16 @@ def _band(b: _Builder, k: int, n: int, side: int, pos: str, side_mask: str, src_
     return _branch(g, g.op("Reshape", parts, g.c("shape18", [1, -1, 18, win, win], np.int64)), f"t{k}_band{n}_{side}")
 
 
-def _tile(b: _Builder, k: int, window: str, kernels: Mapping[int, np.ndarray], scales: Mapping[int, int], src: np.ndarray,
-          cfg: Mapping[str, Any], diameters: np.ndarray, fp16: bool) -> onnx.GraphProto:
+def _tile(b: GraphBuilder, k: int, window: str, kernels: Mapping[int, np.ndarray], scales: Mapping[int, int], src: np.ndarray,
+          cfg: ModelConfig, contract: Contract, diameters: np.ndarray, fp16: bool) -> onnx.GraphProto:
     """Then-branch: tile ``k``'s accumulators ``(1, B, 18, win, win)`` from the outer ``window``;
     band ``n``, side ``s`` runs where ``band_active[k, n - 1, s]``. A band that does not run
     gives an empty ``(0, B, 18, win, win)``, so the sum over the bands costs only the bands
     that ran."""
-    g = _Nodes(_Builder(b.count), f"t{k}")
-    c_max, blocks = float(cfg["coc_scale_px"]), int(cfg["blocks"])
+    g = _Nodes(GraphBuilder(b.count), f"t{k}")
+    c_max, blocks = float(contract.coc_scale_px), int(cfg.blocks)
     win = src.shape[-1]
-    _, rgb = _linear_rgb(g, window, cfg)
+    _, rgb = _linear_rgb(g, window, contract.normalization)
     coc_in = g.op("Slice", window, g.c("s3", [3], np.int64), g.c("s4", [4], np.int64), g.c("ax1", [1], np.int64))
     one = g.c("one", 1.0)
     c = g.op("Mul", coc_in, g.c("c_max", c_max))
@@ -210,8 +212,8 @@ def _tile(b: _Builder, k: int, window: str, kernels: Mapping[int, np.ndarray], s
             for side, (mask, sign) in enumerate(((behind, 1.0), (front, -1.0))):
                 used = g.op("Gather", g.op("Gather", flags, g.c(f"n{n}_row", n - 1, np.int64)), g.c(f"side{side}", side, np.int64))
                 then = _band(g.b, k, n, side, pos, mask, src_mask, rgb, c, kernels[n][side], scales.get(n, 1), win,
-                             sign * float(diameters[n]), float(cfg["occlusion_margin_px"]), fp16)
-                skip = _Nodes(_Builder(g.b.count), f"t{k}.n{n}s{side}.skip")
+                             sign * float(diameters[n]), float(cfg.occlusion_margin_px), fp16)
+                skip = _Nodes(GraphBuilder(g.b.count), f"t{k}.n{n}s{side}.skip")
                 empty = skip.op("Slice", base, skip.c("s0", [0], np.int64), skip.c("s0", [0], np.int64), skip.c("ax0", [0], np.int64))
                 else_graph = _branch(skip, empty, f"t{k}_band{n}_{side}_skip")
                 g.b.count = max(g.b.count, skip.b.count) + 1
@@ -221,10 +223,10 @@ def _tile(b: _Builder, k: int, window: str, kernels: Mapping[int, np.ndarray], s
     return _branch(g, base, f"t{k}_network")
 
 
-def _passthrough(b: _Builder, k: int, window: str, src: np.ndarray, cfg: Mapping[str, Any]) -> onnx.GraphProto:
+def _passthrough(b: GraphBuilder, k: int, window: str, src: np.ndarray, norm: Normalization) -> onnx.GraphProto:
     """Else-branch: the tile's core as in-focus light (no convolution)."""
-    g = _Nodes(_Builder(b.count), f"t{k}.pass")
-    norm_rgb, rgb = _linear_rgb(g, window, cfg)
+    g = _Nodes(GraphBuilder(b.count), f"t{k}.pass")
+    norm_rgb, rgb = _linear_rgb(g, window, norm)
     m = g.c("src", src[None, None])
     ones = g.op("Add", g.op("Mul", norm_rgb, g.c("zero", 0.0)), m)  # (B, 3, win, win) of the mask
     zeros6 = g.op("Mul", g.op("Concat", rgb, rgb, axis=1), g.c("zero", 0.0))
@@ -232,28 +234,30 @@ def _passthrough(b: _Builder, k: int, window: str, src: np.ndarray, cfg: Mapping
     return _branch(g, g.op("Unsqueeze", parts, g.c("ax0", [0], np.int64)), f"t{k}_pass")
 
 
-def build_lens_graph(kernels: Mapping[int, np.ndarray], source_masks: np.ndarray, diameters: np.ndarray,
-                     cfg: Mapping[str, Any], layout: TileLayout, fp16: bool = False, opset: int = 18,
-                     metadata: Mapping[str, str] | None = None, scales: Mapping[int, int] | None = None) -> onnx.ModelProto:
+def build_lens_graph(kernels: Mapping[int, np.ndarray], diameters: np.ndarray, cfg: ModelConfig, contract: Contract,
+                     fp16: bool = False, opset: int = 18, metadata: Mapping[str, str] | None = None,
+                     scales: Mapping[int, int] | None = None) -> onnx.ModelProto:
     """The full-image ONNX model of a ``LensBokeh``.
 
     Args:
         kernels: ``{n: (tiles, 2, 3, k, k)}`` point-spread functions of block n (side 0 behind,
             1 in front), as ``LensBokeh.kernels(n)`` returns them, or binned by
             ``reduce_kernel`` for the bands that ``scales`` reduces.
-        source_masks: ``(tiles, win, win)`` the pixels each tile scatters.
-        diameters: ``(N + 1,)`` band centres in px.
-        cfg: ``ModelConfig.to_dict()``; layout: ``ModelConfig.layout``.
+        diameters: ``(N + 1,)`` band centres in px (``LensBokeh.diameters``).
+        cfg, contract: the network's config and data contract (its tile grid, normalisation
+            and CoC scale).
         fp16: float16 convolutions. opset: >= 18 (``Col2Im``). metadata: ``metadata_props``.
         scales: ``{n: s}`` band n convolved on a grid s times coarser (default: all 1, direct).
     """
     if opset < 18:
         raise ValueError(f"the lens graph needs opset >= 18 (Col2Im), got {opset}")
     scales = dict(scales or {})
-    h, w = cfg["image_height"], cfg["image_width"]
+    layout = cfg.layout(*contract.size)
+    source_masks = layout.source_masks()
+    h, w = contract.size
     (hp, wp), win, t, t_o = layout.padded_size, layout.window, layout.core, layout.overlap
     n_t = layout.num_tiles
-    b = _Builder()
+    b = GraphBuilder()
     top = _Nodes(b, "g")
     x = top.op("Concat", "aif", "coc", axis=1)
     pad_t, pad_b, pad_l, pad_r = layout.pads(h, w)
@@ -264,9 +268,9 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], source_masks: np.ndarray
                         b.const(f"t{k}.ends", [r + win, c + win], np.int64), b.const("axes_hw", [2, 3], np.int64))
         cond = top.op("Gather", "tile_active", b.const(f"t{k}.index", k, np.int64))
         tile_kernels = {n: kernels[n][k] for n in kernels}
-        then = _tile(b, k, window, tile_kernels, scales, source_masks[k], cfg, diameters, fp16)
+        then = _tile(b, k, window, tile_kernels, scales, source_masks[k], cfg, contract, diameters, fp16)
         b.count += 10_000  # branch-local names stay unique across branches
-        other = _passthrough(b, k, window, source_masks[k], cfg)
+        other = _passthrough(b, k, window, source_masks[k], contract.normalization)
         b.count += 10_000
         placed.append(top.op("If", cond, then_branch=then, else_branch=other))  # (1, B, 18, win, win)
     # overlap-add of the windows in one pass: (T, B, 18, win, win) -> (B, 18 win^2, T) -> Col2Im
@@ -288,14 +292,14 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], source_masks: np.ndarray
         lit, got = top.op("Mul", color, frac), top.op("Mul", cover, frac)
         out = lit if out is None else top.op("Add", out, lit)
         taken = got if taken is None else top.op("Add", taken, got)
-    if cfg.get("fill", "normalize") == "background":
+    if cfg.fill == "background":
         hole = top.op("Max", top.op("Sub", one, taken), zero)
-        linear = top.op("Max", top.op("Add", out, top.op("Mul", hole, _hidden_background(top, x, cfg))), zero)
+        linear = top.op("Max", top.op("Add", out, top.op("Mul", hole, _hidden_background(top, x, contract))), zero)
     else:
         linear = top.op("Max", top.op("Div", out, top.op("Max", taken, eps)), zero)
-    shifted = top.op("Add", linear, b.const("offset", float(cfg["norm_offset"])))
-    scale = b.const("scale", float(cfg["norm_scale"]))
+    shifted = top.op("Add", linear, b.const("offset", float(contract.normalization.offset)))
+    scale = b.const("scale", float(contract.normalization.scale))
     top.nodes.append(helper.make_node("Div", [top.op("Sub", shifted, scale), top.op("Add", shifted, scale)], ["defocus"],
                                       name="encode"))
-    extra = [helper.make_tensor_value_info("band_active", TensorProto.BOOL, [n_t, max(int(cfg["blocks"]), 1), 2])]
+    extra = [helper.make_tensor_value_info("band_active", TensorProto.BOOL, [n_t, max(int(cfg.blocks), 1), 2])]
     return finish_model(top.nodes, b.initializers, "neuralbokeh_lens", (h, w), n_t, opset, metadata, extra)

@@ -9,14 +9,16 @@ from __future__ import annotations
 
 import torch.nn as nn
 
+from ..core.contract import Contract
 from .config import ModelConfig
 from .lens import LensBokeh
-from .paper import NeuralBokeh
+from .paper import PaperBokeh
 
 
-def build_model(config: ModelConfig) -> nn.Module:
-    """The network a config describes: :class:`LensBokeh` or :class:`NeuralBokeh`."""
-    return LensBokeh(config) if config.architecture == "lens" else NeuralBokeh(config)
+def build_model(config: ModelConfig, contract: Contract) -> nn.Module:
+    """The network a config describes, for the data a contract describes: :class:`LensBokeh` or
+    :class:`PaperBokeh` (``config.blocks`` resolved: :meth:`ModelConfig.resolved`)."""
+    return (LensBokeh if config.architecture == "lens" else PaperBokeh)(config, contract)
 
 
-__all__ = ["LensBokeh", "ModelConfig", "NeuralBokeh", "build_model"]
+__all__ = ["LensBokeh", "ModelConfig", "PaperBokeh", "build_model"]

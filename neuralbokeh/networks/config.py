@@ -1,125 +1,123 @@
 """The network's configuration: everything needed to rebuild either architecture (torch-free).
 
-A checkpoint stores ``ModelConfig.to_dict()``; :func:`neuralbokeh.networks.build_model` rebuilds
-the network from it. The ``[model]`` table of a training config sets the fields that are not
-decided by the data (see :data:`FROM_DATA`).
+A checkpoint stores ``ModelConfig.to_dict()`` beside its data contract
+(:class:`neuralbokeh.core.contract.Contract`: image size, normalisation, CoC scale, lens,
+aperture); :func:`neuralbokeh.networks.build_model` rebuilds the network from the two. The
+``[model]`` table of a training config *is* this class (``blocks = "auto"`` is resolved from the
+data's largest CoC by :meth:`ModelConfig.resolved`).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, fields, replace
 
 from ..core.tiling import TileLayout
 
 ARCHITECTURES = ("lens", "paper")
 PUPIL_INITS = ("disk", "gaussian", "aperture")
 FILLS = ("background", "normalize")
-KERNELS = ("growing", "fixed3")
+KERNEL_SIZES = ("growing", "fixed3")
 TILINGS = ("overlap", "none", "no_overlap")
 HEADS = ("identity", "paper")
+# the identity head scales tanh(d) by this: 1 + rgb * tanh(d) stays > 0 for inputs of exactly +-1
+TANH_LIMIT = 1.0 - 1e-6
+# keys of model configs written before the data contract: they now live in the contract
+_LEGACY_DATA_KEYS = ("image_height", "image_width", "coc_scale_px", "norm_scale", "norm_offset", "init_aperture")
 
 
 @dataclass(frozen=True)
 class ModelConfig:
-    """Everything needed to rebuild the network (stored in every checkpoint).
+    """The network's hyper-parameters (stored in every checkpoint; the image size, normalisation
+    and CoC scale come from the data contract).
 
     Args:
-        image_height, image_width: the resolution the network is built for (px).
-        blocks: number N of residual blocks (from the data's largest CoC, see
-            ``optics.blocks_for_coc``), >= 0.
+        architecture: ``"lens"`` (default: :class:`neuralbokeh.networks.lens.LensBokeh`, the
+            skeleton with a learned lens) or ``"paper"`` (:class:`neuralbokeh.networks.paper.PaperBokeh`,
+            the paper as written).
+        blocks: number N of residual blocks, >= 0, or ``"auto"``: from the data's largest CoC
+            (``optics.blocks_for_coc``), resolved before a network is built.
         features: feature channels per tile, >= 1.
         tile: tile core size t (px), >= 1.
         overlap: extra context t_o on every side of a tile (px), 0 <= 2 t_o <= t.
         tiling: ``"overlap"`` (the paper), ``"no_overlap"`` (t_o forced to 0) or ``"none"``
             (one tile covering the image).
-        kernels: ``"growing"`` (2n+1, the paper) or ``"fixed3"`` (ablation).
-        head: ``"identity"`` or ``"paper"`` (see the module doc).
+        kernel_sizes: ``"growing"`` (2n+1, the paper) or ``"fixed3"`` (ablation).
+        head: ``"identity"`` or ``"paper"`` (see :mod:`neuralbokeh.networks.paper`).
         fft_min_kernel: kernel size from which per-channel convolutions use the FFT (no grad).
         fft_min_kernel_train: the same when gradients are computed.
-        architecture: ``"lens"`` (default: :class:`neuralbokeh.lensnet.LensBokeh`, the skeleton
-            with a learned lens) or ``"paper"`` (:class:`NeuralBokeh`, the paper as written).
-        coc_scale_px: the CoC input's px per unit (the data's largest |CoC|); the lens
-            architecture needs it (> 0) to size its kernels.
-        norm_scale, norm_offset: the colour normalisation's ``s`` and ``o`` (linear units), so
-            the lens architecture works in linear light.
         pupil_size: samples per side of each learned pupil grid (lens), >= 4.
         pupil_init: the lens architecture's starting pupil: ``"disk"``, ``"gaussian"`` (the
-            baseline's profile) or ``"aperture"`` (the shape in ``init_aperture``).
+            baseline's profile) or ``"aperture"`` (the data's aperture shape, from the contract).
         occlusion_margin_px: CoC difference (px) over which light changes from "same surface"
             to "in front of / behind" the receiving pixel (lens), > 0.
-        init_aperture: ``ApertureModel.to_dict()`` of the data (for ``pupil_init = "aperture"``).
         fill: what the lens architecture puts where its coverage falls short (what a blurred
             foreground uncovers): ``"background"`` (the visible background around the occluder,
             as the reference renderer's default) or ``"normalize"`` (divide by the coverage;
             checkpoints written before this option).
-        (``features``, ``overlap`` semantics, ``head`` and the FFT thresholds: paper only;
-        ``tile``, ``overlap``, ``tiling``, ``kernels``, ``blocks``: both.)
+        (``features``, ``head`` and the FFT thresholds: paper only; ``pupil_*``,
+        ``occlusion_margin_px``, ``fill``: lens only; the rest: both.)
     """
 
-    image_height: int
-    image_width: int
-    blocks: int
+    architecture: str = "lens"
+    blocks: int | str = "auto"
     features: int = 12
     tile: int = 200
     overlap: int = 60
     tiling: str = "overlap"
-    kernels: str = "growing"
+    kernel_sizes: str = "growing"
     head: str = "identity"
     fft_min_kernel: int = 15
     fft_min_kernel_train: int = 5
-    architecture: str = "lens"
-    coc_scale_px: float = 0.0
-    norm_scale: float = 0.18
-    norm_offset: float = 0.0018
     pupil_size: int = 48
     pupil_init: str = "disk"
     occlusion_margin_px: float = 2.0
-    init_aperture: dict | None = None
     fill: str = "background"
 
     def __post_init__(self) -> None:
-        for name in ("image_height", "image_width", "features", "tile", "fft_min_kernel", "fft_min_kernel_train"):
+        for name in ("features", "tile", "fft_min_kernel", "fft_min_kernel_train"):
             v = getattr(self, name)
             if not isinstance(v, int) or v < 1:
-                raise ValueError(f"{name} must be an integer >= 1, got {v!r}")
-        if not isinstance(self.blocks, int) or self.blocks < 0:
-            raise ValueError(f"blocks must be an integer >= 0, got {self.blocks!r}")
+                raise ValueError(f"model.{name} must be an integer >= 1, got {v!r}")
+        if self.blocks != "auto" and (isinstance(self.blocks, bool) or not isinstance(self.blocks, int) or self.blocks < 0):
+            raise ValueError(f"model.blocks must be an integer >= 0 or 'auto', got {self.blocks!r}")
         if not isinstance(self.overlap, int) or self.overlap < 0 or 2 * self.overlap > self.tile:
-            raise ValueError(f"overlap must be an integer with 0 <= 2 * overlap <= tile ({self.tile}), got {self.overlap!r}")
+            raise ValueError(f"model.overlap must be an integer with 0 <= 2 * overlap <= tile ({self.tile}), got {self.overlap!r}")
         if not isinstance(self.pupil_size, int) or self.pupil_size < 4:
-            raise ValueError(f"pupil_size must be an integer >= 4, got {self.pupil_size!r}")
-        for name in ("coc_scale_px", "norm_offset"):
-            if not (isinstance(self.__getattribute__(name), (int, float)) and math.isfinite(getattr(self, name)) and getattr(self, name) >= 0):
-                raise ValueError(f"{name} must be a finite number >= 0, got {getattr(self, name)!r}")
-        for name in ("norm_scale", "occlusion_margin_px"):
-            if not (isinstance(getattr(self, name), (int, float)) and math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
-                raise ValueError(f"{name} must be a finite number > 0, got {getattr(self, name)!r}")
-        if self.architecture == "lens" and self.coc_scale_px <= 0:
-            raise ValueError(f"architecture 'lens' needs coc_scale_px > 0 px, got {self.coc_scale_px!r}")
-        for name, allowed in (("tiling", TILINGS), ("kernels", KERNELS), ("head", HEADS),
+            raise ValueError(f"model.pupil_size must be an integer >= 4, got {self.pupil_size!r}")
+        m = self.occlusion_margin_px
+        if not (isinstance(m, (int, float)) and math.isfinite(m) and m > 0):
+            raise ValueError(f"model.occlusion_margin_px must be a finite number > 0 px, got {m!r}")
+        for name, allowed in (("tiling", TILINGS), ("kernel_sizes", KERNEL_SIZES), ("head", HEADS),
                               ("architecture", ARCHITECTURES), ("pupil_init", PUPIL_INITS), ("fill", FILLS)):
             if getattr(self, name) not in allowed:
-                raise ValueError(f"{name} must be one of {allowed}, got {getattr(self, name)!r}")
+                raise ValueError(f"model.{name} must be one of {allowed}, got {getattr(self, name)!r}")
 
-    @property
-    def layout(self) -> TileLayout:
-        """The tile grid actually used (``tiling = "none"``: one tile; ``"no_overlap"``: no context)."""
-        return TileLayout.for_image(self.image_height, self.image_width, self.tile, self.overlap, self.tiling)
+    def resolved(self, max_coc_px: float) -> ModelConfig:
+        """This config with ``blocks = "auto"`` replaced by N for the data's largest |CoC| (px)."""
+        from ..core.optics import blocks_for_coc
 
-    @property
-    def num_tiles(self) -> int:
-        return self.layout.num_tiles
+        return self if self.blocks != "auto" else replace(self, blocks=blocks_for_coc(max_coc_px))
+
+    def layout(self, height: int, width: int) -> TileLayout:
+        """The tile grid over an ``height x width`` image."""
+        return TileLayout.for_image(height, width, self.tile, self.overlap, self.tiling)
 
     def kernel_size(self, n: int) -> int:
         """Kernel size of residual block n (1-based)."""
-        return 3 if self.kernels == "fixed3" else 2 * n + 1
+        return 3 if self.kernel_sizes == "fixed3" else 2 * n + 1
 
     def to_dict(self) -> dict:
         return asdict(self)
 
     @classmethod
-    def from_dict(cls, d: dict) -> "ModelConfig":
+    def from_dict(cls, d: dict) -> ModelConfig:
+        """Read :meth:`to_dict`'s output, and model configs of older checkpoints (their data
+        fields, now in the contract, are dropped; ``kernels`` is ``kernel_sizes``; no
+        ``architecture`` means the paper's network; no ``fill`` means ``"normalize"``)."""
+        d = {k: v for k, v in d.items() if k not in _LEGACY_DATA_KEYS}
+        if "kernels" in d:
+            d["kernel_sizes"] = d.pop("kernels")
         known = {f.name for f in fields(cls)}
         unknown = set(d) - known
         if unknown:

@@ -1,6 +1,6 @@
 """The default network: the paper's tiled skeleton carrying a learned lens (pure definitions).
 
-Same interface as :class:`neuralbokeh.networks.paper.NeuralBokeh` (the paper's network, kept as the
+Same interface as :class:`neuralbokeh.networks.paper.PaperBokeh` (the paper's network, kept as the
 ``architecture = "paper"`` ablation): input ``(B, 4, H, W)`` = normalised all-in-focus RGB in
 [-1, 1) and the CoC divided by ``coc_scale_px``; output ``(B, 3, H, W)`` normalised RGB.
 
@@ -65,9 +65,11 @@ import torch.nn.functional as F
 
 from ..core.apertures import Aperture, Disk, Gaussian, aperture_from_dict
 from ..core.checks import check_finite
+from ..core.contract import Contract
 from ..ops.fftconv import next_fast_len
 from ..ops.holes import hidden_background
 from ..ops.tiles import tile
+from .config import ModelConfig
 
 log = logging.getLogger(__name__)
 
@@ -162,14 +164,14 @@ def prior_transmission(shape: Aperture, size: int) -> np.ndarray:
     return t.reshape(size, s, size, s).mean(axis=(1, 3))
 
 
-def _prior_shape(cfg: Any) -> Aperture:
+def _prior_shape(cfg: Any, aperture: dict | None) -> Aperture:
     if cfg.pupil_init == "disk":
         return Disk()
     if cfg.pupil_init == "gaussian":
         return Gaussian(0.5)
-    if not cfg.init_aperture:
+    if not aperture:
         raise ValueError("pupil_init = 'aperture' needs the data's aperture (init_aperture), got none")
-    return aperture_from_dict(cfg.init_aperture["shape"])
+    return aperture_from_dict(aperture["shape"])
 
 
 def _scatter(feats: torch.Tensor, kern: torch.Tensor, which: torch.Tensor, s: int) -> torch.Tensor:
@@ -195,23 +197,23 @@ def _scatter(feats: torch.Tensor, kern: torch.Tensor, which: torch.Tensor, s: in
 class LensBokeh(nn.Module):
     """The default network (see the module doc). Built from a :class:`~neuralbokeh.networks.ModelConfig`."""
 
-    def __init__(self, config: Any) -> None:
+    def __init__(self, config: ModelConfig, contract: Contract) -> None:
         super().__init__()
-        self.config = config
+        if not isinstance(config.blocks, int):
+            raise ValueError(f"model.blocks must be resolved to an integer before building (ModelConfig.resolved), got {config.blocks!r}")
+        self.config, self.contract = config, contract
         cfg = config
-        if cfg.coc_scale_px <= 0:
-            raise ValueError(f"the lens architecture needs coc_scale_px > 0 (the CoC input's px per unit), got {cfg.coc_scale_px}")
-        self.c_max = float(cfg.coc_scale_px)
+        self.layout = layout = config.layout(*contract.size)
+        self.c_max = float(contract.coc_scale_px)
         self.diameters = band_diameters(self.c_max, cfg.blocks)
-        prior = prior_transmission(_prior_shape(cfg), cfg.pupil_size)
+        prior = prior_transmission(_prior_shape(cfg, contract.aperture), cfg.pupil_size)
         logits = np.log(np.maximum(prior, PUPIL_FLOOR))
         # log-transmissions (side [behind, in front], channel, P, P): one lens-wide pupil, plus a
         # per-tile correction (cat-eye clipping, field-dependent aberrations) that starts at zero
         init = np.broadcast_to(logits, (2, 3, cfg.pupil_size, cfg.pupil_size)).copy()
         self.pupil_shared = nn.Parameter(torch.from_numpy(init).float())
-        self.pupil_tile = nn.Parameter(torch.zeros(cfg.num_tiles, 2, 3, cfg.pupil_size, cfg.pupil_size))
+        self.pupil_tile = nn.Parameter(torch.zeros(layout.num_tiles, 2, 3, cfg.pupil_size, cfg.pupil_size))
         self.log_channel_scale = nn.Parameter(torch.zeros(3))
-        layout = cfg.layout
         reach = math.ceil(0.5 * self.c_max * 1.1)  # the largest CoC radius, with room for a learned channel scale
         if layout.num_tiles > 1 and layout.overlap < reach:
             log.warning("tile overlap %d px is below the largest CoC radius (~%d px): light that a tile's blur would "
@@ -239,7 +241,7 @@ class LensBokeh(nn.Module):
         u = pos[None, None, :] / radius[:, None, None] / PUPIL_EXTENT  # (3, 1, m), in grid units [-1, 1]
         v = pos[None, :, None] / radius[:, None, None] / PUPIL_EXTENT  # rows go down; grid rows too
         grid = torch.stack([u.expand(3, m, m), v.expand(3, m, m)], dim=-1)  # (3, m, m, 2)
-        t_count = cfg.num_tiles
+        t_count = self.layout.num_tiles
         pup = torch.exp(self.pupil_shared[None] + self.pupil_tile).reshape(t_count * 2, 3, cfg.pupil_size, cfg.pupil_size)
         pup = pup.permute(1, 0, 2, 3)  # (3, T*2, P, P): one grid per channel
         samples = F.grid_sample(pup, grid, mode="bilinear", padding_mode="zeros", align_corners=True)  # (3, T*2, m, m)
@@ -250,15 +252,6 @@ class LensBokeh(nn.Module):
         return torch.stack([kern[:, 0], kern[:, 1].flip(-2, -1)], dim=1)
 
     # -- forward ---------------------------------------------------------------------------
-    def _decode(self, n: torch.Tensor) -> torch.Tensor:
-        s, o = self.config.norm_scale, self.config.norm_offset
-        return s * (1.0 + n) / (1.0 - n) - o
-
-    def _encode(self, x: torch.Tensor) -> torch.Tensor:
-        s, o = self.config.norm_scale, self.config.norm_offset
-        shifted = x + o
-        return (shifted - s) / (shifted + s)
-
     def tile_accumulators(self, x: torch.Tensor, tile_active: torch.Tensor | None = None,
                           scales: dict[int, int] | None = None) -> torch.Tensor:
         """``(B, 4, H, W)`` -> per-window accumulators ``(B, tiles, 3 buckets, 6, win, win)``
@@ -272,16 +265,15 @@ class LensBokeh(nn.Module):
         the buckets stay at full resolution.
         """
         cfg = self.config
-        if x.ndim != 4 or x.shape[1] != 4 or tuple(x.shape[2:]) != (cfg.image_height, cfg.image_width):
-            raise ValueError(f"input must have shape (B, 4, {cfg.image_height}, {cfg.image_width}) for this model, got {tuple(x.shape)}")
+        self.contract.check_network_input(x)
         check_finite("model input", x)
-        layout = cfg.layout
-        n_t = cfg.num_tiles
+        layout = self.layout
+        n_t = layout.num_tiles
         b = x.shape[0]
         xt = tile(x, layout)
         win = xt.shape[-1]
         xt = xt.view(b, n_t, 4, win, win)
-        rgb = self._decode(xt[:, :, :3])  # linear light
+        rgb = self.contract.normalization.decode(xt[:, :, :3])  # linear light
         coc = xt[:, :, 3] * self.c_max  # (B, T, win, win) signed px
         pos = band_position(coc, self.c_max, cfg.blocks)  # continuous band index
         src = self.source_mask.to(x.dtype)[None]  # (1, T, 1, win, win)
@@ -327,9 +319,8 @@ class LensBokeh(nn.Module):
         """Linear ``(B, 3, H, W)`` estimate of what foregrounds hide in the input ``(B, 4, H, W)``
         (:func:`neuralbokeh.ops.holes.hidden_background`, occluders looked for within half the
         largest CoC the network is built for)."""
-        cfg = self.config
-        return hidden_background(self._decode(x[:, :3]), x[:, 3:] * cfg.coc_scale_px,
-                                 radius_px=math.ceil(cfg.coc_scale_px / 2.0))
+        return hidden_background(self.contract.normalization.decode(x[:, :3]), x[:, 3:] * self.c_max,
+                                 radius_px=math.ceil(self.c_max / 2.0))
 
     def composite(self, acc: torch.Tensor, background: torch.Tensor | None = None) -> torch.Tensor:
         """Buckets ``(B, 3, 6, H, W)`` -> linear RGB ``(B, 3, H, W)``: near over same over far,
@@ -358,18 +349,19 @@ class LensBokeh(nn.Module):
         b, n_t, _, _, win, _ = acc.shape
         background = self.hidden(x) if cfg.fill == "background" else None
         if return_tiles:
-            bg = None if background is None else tile(background, cfg.layout).view(b * n_t, 3, win, win)
+            bg = None if background is None else tile(background, self.layout).view(b * n_t, 3, win, win)
             out = self.composite(acc.view(b * n_t, 3, 6, win, win), bg)
-            return self._encode(out.clamp_min(0.0)).view(b, n_t * 3, win, win)
-        layout = cfg.layout
+            return self.contract.normalization.encode(out.clamp_min(0.0)).view(b, n_t * 3, win, win)
+        layout = self.layout
         canvas = acc.new_zeros(b, 18, *layout.padded_size)
         for k, r, c in layout.origins():
             canvas[:, :, r : r + win, c : c + win] += acc[:, k].reshape(b, 18, win, win)
         t_o = layout.overlap
-        canvas = canvas[:, :, t_o : t_o + cfg.image_height, t_o : t_o + cfg.image_width]
-        out = self.composite(canvas.view(b, 3, 6, cfg.image_height, cfg.image_width), background)
-        return self._encode(out.clamp_min(0.0))
+        h, w = self.contract.size
+        canvas = canvas[:, :, t_o : t_o + h, t_o : t_o + w]
+        out = self.composite(canvas.view(b, 3, 6, h, w), background)
+        return self.contract.normalization.encode(out.clamp_min(0.0))
 
     def tile_targets(self, y: torch.Tensor) -> torch.Tensor:
         """Cut a target ``(B, 3, H, W)`` into the windows (for the per-tile-loss ablation)."""
-        return tile(y, self.config.layout)
+        return tile(y, self.layout)

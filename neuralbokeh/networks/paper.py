@@ -44,9 +44,9 @@ import torch.nn.functional as F
 from ..core.checks import check_finite
 from ..ops.fftconv import fft_convolve2d
 from ..ops.tiles import tile, untile
-from .config import ModelConfig
+from ..core.contract import Contract
+from .config import TANH_LIMIT, ModelConfig
 
-_TANH_LIMIT = 1.0 - 1e-6  # scale on tanh(d): keeps 1 + rgb * tanh(d) > 0 for inputs of exactly +-1
 
 class PerChannelConv(nn.Module):
     """Depthwise (per-channel) ``k x k`` convolution with zero 'same' padding and bias.
@@ -90,13 +90,16 @@ class ResidualBlock(nn.Module):
         return x + self.conv_b(F.relu(self.conv_a(x)))
 
 
-class NeuralBokeh(nn.Module):
+class PaperBokeh(nn.Module):
     """The tiled per-channel residual network. See the module doc for the architecture."""
 
-    def __init__(self, config: ModelConfig) -> None:
+    def __init__(self, config: ModelConfig, contract: Contract) -> None:
         super().__init__()
-        self.config = config
-        n, f = config.num_tiles, config.features
+        if not isinstance(config.blocks, int):
+            raise ValueError(f"model.blocks must be resolved to an integer before building (ModelConfig.resolved), got {config.blocks!r}")
+        self.config, self.contract = config, contract
+        self.layout = config.layout(*contract.size)
+        n, f = self.layout.num_tiles, config.features
         self.c1 = nn.Conv2d(4 * n, f * n, 1, groups=n)
         self.blocks = nn.ModuleList(
             ResidualBlock(f * n, config.kernel_size(i), config.fft_min_kernel, config.fft_min_kernel_train)
@@ -110,13 +113,10 @@ class NeuralBokeh(nn.Module):
     def forward_tiles(self, x: torch.Tensor) -> torch.Tensor:
         """``(B, 4, H, W)`` -> per-tile outputs ``(B, tiles * 3, win, win)`` before reassembly."""
         cfg = self.config
-        if x.ndim != 4 or x.shape[1] != 4 or tuple(x.shape[2:]) != (cfg.image_height, cfg.image_width):
-            raise ValueError(
-                f"input must have shape (B, 4, {cfg.image_height}, {cfg.image_width}) for this model, got {tuple(x.shape)}"
-            )
+        self.contract.check_network_input(x)
         check_finite("model input", x)
-        n, f = cfg.num_tiles, cfg.features
-        xt = tile(x, cfg.layout)  # (B, n*4, win, win)
+        n, f = self.layout.num_tiles, cfg.features
+        xt = tile(x, self.layout)  # (B, n*4, win, win)
         b, _, win, _ = xt.shape
         h = self.c1(xt)
         for block in self.blocks:
@@ -125,7 +125,7 @@ class NeuralBokeh(nn.Module):
         z = torch.cat([h.view(b, n, f, win, win), rgb], dim=2).view(b, n * (f + 3), win, win)
         out = torch.tanh(self.c2(z))
         if cfg.head == "identity":
-            t = out * _TANH_LIMIT  # strictly inside (-1, 1); unlike a clamp it never zeroes the gradient
+            t = out * TANH_LIMIT  # strictly inside (-1, 1); unlike a clamp it never zeroes the gradient
             r = rgb.reshape(b, n * 3, win, win)
             out = (r + t) / (1.0 + r * t)  # = tanh(atanh(r) + d)
         return out
@@ -133,10 +133,9 @@ class NeuralBokeh(nn.Module):
     def forward(self, x: torch.Tensor, return_tiles: bool = False) -> torch.Tensor:
         """``(B, 4, H, W)`` -> ``(B, 3, H, W)`` normalised defocused RGB (or the un-blended
         tiles ``(B, tiles * 3, win, win)`` with ``return_tiles``, for the per-tile loss)."""
-        cfg = self.config
         tiles = self.forward_tiles(x)
-        return tiles if return_tiles else untile(tiles, cfg.layout, cfg.image_height, cfg.image_width)
+        return tiles if return_tiles else untile(tiles, self.layout, *self.contract.size)
 
     def tile_targets(self, y: torch.Tensor) -> torch.Tensor:
         """Cut a target ``(B, 3, H, W)`` into the same windows (for the per-tile-loss ablation)."""
-        return tile(y, self.config.layout)
+        return tile(y, self.layout)

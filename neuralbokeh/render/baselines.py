@@ -31,7 +31,7 @@ from ..ops.fftconv import fft_convolve2d
 from .scatter import scatter_defocus
 
 
-def _check_inputs(aif: torch.Tensor, coc: torch.Tensor, coc_step: float) -> dict[str, int]:
+def check_baseline_inputs(aif: torch.Tensor, coc: torch.Tensor, coc_step: float) -> dict[str, int]:
     """The shared checks of the baselines: ``(B, 3, H, W)`` colour >= 0, ``(B, 1, H, W)`` finite CoC."""
     d = check_shape("aif", aif, "B 3 H W")
     check_shape("coc", coc, "B 1 H W", B=d["B"], H=d["H"], W=d["W"])
@@ -65,7 +65,7 @@ def gather_defocus(aif: torch.Tensor, coc: torch.Tensor, aperture: ApertureModel
     Returns:
         ``(B, 3, H, W)`` linear RGB (float64).
     """
-    d = _check_inputs(aif, coc, coc_step)
+    d = check_baseline_inputs(aif, coc, coc_step)
     aperture = aperture or ApertureModel()
     x, c = aif.double(), coc.double() / coc_step
     lo = int(torch.floor(c.min()))
@@ -75,10 +75,7 @@ def gather_defocus(aif: torch.Tensor, coc: torch.Tensor, aperture: ApertureModel
         weight = (1.0 - (c - level).abs()).clamp(min=0.0)  # hat function: linear interpolation between levels
         if not bool((weight > 0).any()):
             continue
-        diameter = abs(level) * coc_step
-        k = torch.from_numpy(aperture.kernels(diameter)).to(x)  # (3, k, k), sums to 1 per channel
-        if level < 0:
-            k = k.flip(-1, -2)
+        k = torch.from_numpy(aperture.psf(level * coc_step)).to(x)  # (3, k, k), sums to 1 per channel
         r = k.shape[-1] // 2  # edge replication outside the frame, like the scatter renderer's border handling
         blurred = fft_convolve2d(F.pad(x, (r, r, r, r), mode="replicate"), k[None])
         out += weight * blurred[..., r : r + d["H"], r : r + d["W"]]
@@ -125,7 +122,7 @@ def pseudo_ray_trace(aif: torch.Tensor, coc: torch.Tensor, aperture: ApertureMod
     Returns:
         ``(B, 3, H, W)`` linear RGB (float64).
     """
-    d = _check_inputs(aif, coc, coc_step)
+    d = check_baseline_inputs(aif, coc, coc_step)
     check_positive("sigma", sigma)
     if blending not in ("radiance", "yang"):
         raise ValueError(f"blending must be 'radiance' or 'yang', got {blending!r}")

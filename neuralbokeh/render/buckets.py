@@ -26,7 +26,7 @@ import torch
 
 from ..core.apertures import ApertureModel
 from ..core.checks import check_positive
-from .baselines import _check_inputs
+from .baselines import check_baseline_inputs
 
 
 def _kernel_table(aperture: ApertureModel, lo: int, hi: int, radius: int, like: torch.Tensor) -> torch.Tensor:
@@ -35,9 +35,7 @@ def _kernel_table(aperture: ApertureModel, lo: int, hi: int, radius: int, like: 
     size = 2 * radius + 1
     table = torch.zeros(hi - lo + 1, 3, size, size, dtype=like.dtype, device=like.device)
     for i, level in enumerate(range(lo, hi + 1)):
-        k = torch.from_numpy(aperture.kernels(float(abs(level)))).to(like)
-        if level < 0:
-            k = k.flip(-1, -2)
+        k = torch.from_numpy(aperture.psf(float(level))).to(like)
         r = k.shape[-1] // 2
         table[i, :, radius - r : radius + r + 1, radius - r : radius + r + 1] = k
     return table
@@ -68,7 +66,7 @@ def bucket_gather(aif: torch.Tensor, coc: torch.Tensor, aperture: ApertureModel 
         ``(B, 3, H, W)`` linear RGB (float64). Cost: ``(2R + 1)^2`` passes over the image with
         ``R`` the largest CoC radius, so an in-focus scene costs one pass.
     """
-    d = _check_inputs(aif, coc, 1.0)
+    d = check_baseline_inputs(aif, coc, 1.0)
     aperture = aperture or ApertureModel()
     x, c = aif.double(), coc.double()
     lo, hi = int(torch.floor(c.min())), int(torch.ceil(c.max()))

@@ -38,7 +38,7 @@ import torch.nn.functional as F
 
 from ..core.apertures import ApertureModel
 from ..core.checks import check_at_least, check_finite, check_positive
-from .baselines import _check_inputs, aperture_rays
+from .baselines import check_baseline_inputs, aperture_rays
 
 _REFINE = 3  # narrowing passes of the min/max search
 
@@ -185,7 +185,7 @@ def lens_ray_trace(aif: torch.Tensor, coc: torch.Tensor, aperture: ApertureModel
     Returns:
         ``(B, 3, H, W)`` linear RGB (float64): the mean colour of each pixel's rays.
     """
-    d = _check_inputs(aif, coc, 1.0)
+    d = check_baseline_inputs(aif, coc, 1.0)
     check_finite("spherical_aberration_px", spherical_aberration_px, " px")
     check_at_least("grid", grid, 2)
     check_at_least("steps", steps, 2)

@@ -15,7 +15,7 @@ import torch
 import torch.nn.functional as F
 
 from ..core.checks import check_at_least, check_positive
-from .baselines import _check_inputs
+from .baselines import check_baseline_inputs
 
 SIGMA_PER_COC = 0.25  # Gaussian sigma per px of CoC diameter
 _UPSAMPLE_VAR = 0.75  # variance (fine px^2) that one bilinear 2x upsampling adds
@@ -36,7 +36,7 @@ def gaussian_spread_reference(aif: torch.Tensor, coc: torch.Tensor) -> torch.Ten
     """Slow reference: every pixel spreads its colour as a normalised, pixel-sampled Gaussian of
     ``sigma = |c| / 4`` (truncated at 3 sigma), no occlusion; beyond the frame the image is
     continued by edge replication. ``(B, 3, H, W)`` -> ``(B, 3, H, W)`` float64."""
-    _check_inputs(aif, coc, 1.0)
+    check_baseline_inputs(aif, coc, 1.0)
     h0, w0 = aif.shape[-2:]
     border = math.ceil(3.0 * float(_pixel_sigma(coc).max()))
     pad = (border, border, border, border)
@@ -77,7 +77,7 @@ def pyramid_spread(aif: torch.Tensor, coc: torch.Tensor, taps: int = 7) -> torch
         ``(B, 3, H, W)`` linear RGB (float64); beyond the frame the image is continued by edge
         replication (so the border is not darkened by flux that nothing outside sends back).
     """
-    _check_inputs(aif, coc, 1.0)
+    check_baseline_inputs(aif, coc, 1.0)
     check_at_least("taps", taps, 3)
     if taps % 2 == 0:
         raise ValueError(f"taps must be odd, got {taps}")
@@ -227,7 +227,7 @@ def tensor_filter(aif: torch.Tensor, coc: torch.Tensor, spacing: float = 1.0, to
     Returns:
         ``(B, 3, H, W)`` linear RGB (float64).
     """
-    d = _check_inputs(aif, coc, 1.0)
+    d = check_baseline_inputs(aif, coc, 1.0)
     check_at_least("chunk_taps", chunk_taps, 1)
     x, sigma = aif.double(), _pixel_sigma(coc)
     h, w = d["H"], d["W"]

@@ -77,9 +77,7 @@ def reference_scatter_layers(
                 a = alphas[i, 0, sy, sx]
                 if a == 0 and n_u == 0:
                     continue
-                k = aperture.kernels(abs(c), field_position(sy, sx, h, w))
-                if c < 0:
-                    k = k[:, ::-1, ::-1]
+                k = aperture.psf(c, field_position(sy, sx, h, w))
                 r = k.shape[-1] // 2
                 # colour, coverage, and a uniform unit field (every pixel scatters 1)
                 value = np.concatenate([colors[i, :, sy, sx], np.full(n_a, a), np.ones(n_u)])

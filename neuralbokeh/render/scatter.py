@@ -133,9 +133,7 @@ def auto_field_grid(aperture: ApertureModel, max_coc_px: float, height: int, wid
 def _kernel_stacks(aperture: ApertureModel, coc: float, fields: np.ndarray, pad: int, n_a: int, n_u: int) -> np.ndarray:
     """``(M, 3 + n_a + n_u, 2 pad + 1, 2 pad + 1)`` kernels for colour, coverage and uniform-field
     channels at ``(M, 2)`` field positions."""
-    k = aperture.kernels_at(abs(coc), fields)
-    if coc < 0:  # in front of the focus plane the aperture's image is inverted
-        k = k[..., ::-1, ::-1]
+    k = aperture.psfs_at(coc, fields)
     out = np.zeros(k.shape[:2] + (2 * pad + 1, 2 * pad + 1))
     o = pad - k.shape[-1] // 2
     out[..., o : o + k.shape[-2], o : o + k.shape[-1]] = k

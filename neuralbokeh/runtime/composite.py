@@ -35,7 +35,7 @@ from tqdm import tqdm
 from ..core.cli import HelpFormatter, run_cli
 from ..core.io import read_image, write_image
 from .masks import erode, gaussian_blur
-from .onnx_model import BokehModel
+from .onnx_model import OnnxBokeh
 
 log = logging.getLogger(__name__)
 _PATTERN = re.compile(r"%0?\d*d")
@@ -126,7 +126,7 @@ def focus_at(curve: tuple[np.ndarray, np.ndarray], frame: int) -> float:
     return float(np.interp(frame, frames, focus))
 
 
-def composite_frame(model: BokehModel, plate: np.ndarray, render: np.ndarray, depth: np.ndarray, alpha: np.ndarray,
+def composite_frame(model: OnnxBokeh, plate: np.ndarray, render: np.ndarray, depth: np.ndarray, alpha: np.ndarray,
                     focus_m: float, erode_px: int = 1, feather_px: float = 1.0, clamp_coc: bool = False) -> np.ndarray:
     """One frame: ``a * model(render) + (1 - a) * plate`` in linear light with ``a`` the eroded,
     smoothed mask. Shapes: plate/render ``(H, W, 3)``, depth/alpha ``(H, W)``; alpha in [0, 1]."""
@@ -177,7 +177,7 @@ def main(argv: list[str] | None = None) -> int:
         curve = read_focus_curve(args.focus_curve) if args.focus_curve else None
         if curve is not None and frames == [None]:
             raise ValueError("--focus-curve needs --frames")
-        model = BokehModel(args.model, threads=args.threads, skip_in_focus=not args.no_skip)
+        model = OnnxBokeh(args.model, threads=args.threads, skip_in_focus=not args.no_skip)
         static: dict[str, np.ndarray] = {}
 
         def load(arg: str, frame: int | None, channels: str) -> np.ndarray:

@@ -1,7 +1,7 @@
 """Run an exported lens model on CPU with onnxruntime: numpy in, numpy out, no torch.
 
-    from neuralbokeh.runtime import BokehModel
-    model = BokehModel("lens.onnx", threads=4)
+    from neuralbokeh.runtime import OnnxBokeh
+    model = OnnxBokeh("lens.onnx", threads=4)
     out = model.render(aif, depth_m, focus_m=2.5)       # (H, W, 3) linear RGB
     out = model.render_coc(aif, coc_px)                 # with a CoC map of your own
 
@@ -32,16 +32,46 @@ import numpy as np
 import onnxruntime as ort
 
 from ..core.checks import check_at_least, check_finite, format_location
-from ..core.normalization import Normalization
-from ..core.optics import ThinLens
+from ..core.contract import Contract
 from ..core.tiling import TileLayout
 
 log = logging.getLogger(__name__)
 
-METADATA_KEY = "neuralbokeh"
+METADATA_KEY = "neuralbokeh"  # the ONNX metadata_props entry holding the JSON below
+FORMAT = "neuralbokeh-onnx"
+FORMAT_VERSION = 2  # 2: "contract" and "model_config" (1: the contract as loose keys, read and upgraded)
 
 
-class BokehModel:
+def make_session(path_or_bytes: str | bytes, threads: int | None = None) -> ort.InferenceSession:
+    """A CPU onnxruntime session (``threads`` intra-op threads; None: onnxruntime's default)."""
+    so = ort.SessionOptions()
+    if threads:
+        so.intra_op_num_threads = int(threads)
+        so.inter_op_num_threads = 1
+    so.log_severity_level = 3
+    return ort.InferenceSession(path_or_bytes, so, providers=["CPUExecutionProvider"])
+
+
+def read_metadata(session: ort.InferenceSession, source: str = "model") -> dict[str, Any]:
+    """The exporter's metadata of a session, with ``contract`` (a ``Contract.to_dict()``) and
+    ``model_config`` whatever the format version.
+
+    Raises:
+        ValueError: no neuralbokeh metadata, or an unknown format or version.
+    """
+    props = session.get_modelmeta().custom_metadata_map
+    if METADATA_KEY not in props:
+        raise ValueError(f"{source} has no {METADATA_KEY!r} metadata: not exported by neuralbokeh's export.py")
+    meta: dict[str, Any] = json.loads(props[METADATA_KEY])
+    version = meta.get("format_version")
+    if meta.get("format") != FORMAT or version not in (1, FORMAT_VERSION):
+        raise ValueError(f"{source}: unsupported model format {meta.get('format')!r} v{version}")
+    if version == 1:
+        meta["contract"] = Contract.from_legacy(meta, meta["model_config"]).to_dict()
+    return meta
+
+
+class OnnxBokeh:
     """A lens model exported by ``export.py``.
 
     Args:
@@ -61,24 +91,10 @@ class BokehModel:
         if not path.is_file():
             raise FileNotFoundError(f"no such model file: {path}")
         check_at_least("in_focus_px", in_focus_px, 0.0, " px")
-        so = ort.SessionOptions()
-        if threads:
-            so.intra_op_num_threads = int(threads)
-            so.inter_op_num_threads = 1
-        so.log_severity_level = 3
-        self.session = ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
-        props = self.session.get_modelmeta().custom_metadata_map
-        if METADATA_KEY not in props:
-            raise ValueError(f"{path} has no {METADATA_KEY!r} metadata: not exported by neuralbokeh's export.py")
-        self.meta: dict[str, Any] = json.loads(props[METADATA_KEY])
-        if self.meta.get("format") != "neuralbokeh-onnx" or self.meta.get("format_version") != 1:
-            raise ValueError(f"{path}: unsupported model format {self.meta.get('format')!r} v{self.meta.get('format_version')}")
-        self.height = int(self.meta["image_size"]["height"])
-        self.width = int(self.meta["image_size"]["width"])
-        self.lens = ThinLens.from_dict(self.meta["lens"]) if self.meta.get("lens") else None
-        self.normalization = Normalization.from_dict(self.meta["normalization"])
-        self.max_coc_px = float(self.meta["max_coc_px"])
-        self.coc_scale_px = float(self.meta["coc_scale_px"])
+        self.session = make_session(str(path), threads)
+        self.meta = read_metadata(self.session, str(path))
+        self.contract = Contract.from_dict(self.meta["contract"])
+        self.height, self.width = self.contract.size
         self.layout = TileLayout(*(int(v) for v in self.meta["layout"]))
         self.skip_in_focus, self.in_focus_px = skip_in_focus, float(in_focus_px)
         self.has_bands = "band_active" in {i.name for i in self.session.get_inputs()}
@@ -92,9 +108,9 @@ class BokehModel:
     def coc_px(self, depth_m: np.ndarray, focus_m: float) -> np.ndarray:
         """Signed CoC diameter in px (negative in front of the focus plane) from planar depth in m
         (> 0, inf allowed) with the model's lens, at the model's image width."""
-        if self.lens is None:
+        if self.contract.lens is None:
             raise ValueError("this model carries no lens metadata; use render_coc with a CoC map")
-        return np.asarray(self.lens.coc_px(np.asarray(depth_m, dtype=np.float64), float(focus_m), self.width, signed=True))
+        return np.asarray(self.contract.lens.coc_px(np.asarray(depth_m, dtype=np.float64), float(focus_m), self.width, signed=True))
 
     def render(self, aif: np.ndarray, depth_m: np.ndarray, focus_m: float, clamp_coc: bool = False) -> np.ndarray:
         """Defocus ``aif`` as the lens focused at ``focus_m`` (m) would.
@@ -133,8 +149,7 @@ class BokehModel:
         ``n = 1..N`` on side ``s`` (0 behind the focus plane, 1 in front), in any image of the
         batch ``(B, H, W)``. A superset by 1e-3 of a band at the band edges (exact).
         All true when skipping is off."""
-        cfg = self.meta["model_config"]
-        blocks, c_max = int(cfg["blocks"]), float(cfg["coc_scale_px"])
+        blocks, c_max = int(self.meta["model_config"]["blocks"]), self.contract.coc_scale_px
         flags = np.zeros((self.num_tiles, max(blocks, 1), 2), dtype=bool)
         step = (max(c_max, 1.0) - 1.0) / max(blocks, 1)
         if not self.skip_in_focus or blocks == 0 or step <= 0:
@@ -164,7 +179,7 @@ class BokehModel:
                              f"for this model, got {a.shape}")
         chw = a4.transpose(0, 3, 1, 2)  # so that errors name the pixel as (row, col)
         check_finite("aif colour", chw)
-        check_at_least("aif colour", chw, -self.normalization.offset)
+        check_at_least("aif colour", chw, -self.contract.normalization.offset)
         return a4, batched
 
     @staticmethod
@@ -182,22 +197,23 @@ class BokehModel:
 
     def _run(self, aif: np.ndarray, coc_px: np.ndarray, clamp_coc: bool, batched: bool) -> np.ndarray:
         check_finite("CoC", coc_px, " px")
-        over = np.abs(coc_px) > self.max_coc_px
+        over = np.abs(coc_px) > self.contract.max_coc_px
         if over.any():
             where = format_location(np.unravel_index(int(np.argmax(np.abs(coc_px))), coc_px.shape)[1:])
             msg = (f"|CoC| up to {np.abs(coc_px).max():.3f} px at {where} ({int(over.sum())} pixels) exceeds the "
-                   f"model's trained maximum of {self.max_coc_px:.3f} px")
+                   f"model's trained maximum of {self.contract.max_coc_px:.3f} px")
             if not clamp_coc:
                 raise ValueError(msg + "; pass clamp_coc=True to clamp it")
             warnings.warn(msg + "; clamped", stacklevel=3)
             log.warning("%s; clamped", msg)
-            coc_px = np.clip(coc_px, -self.max_coc_px, self.max_coc_px)
+            coc_px = np.clip(coc_px, -self.contract.max_coc_px, self.contract.max_coc_px)
         active = self.active_tiles(coc_px)
         self.last_tiles_run = int(active.sum())
+        colour, coc = self.contract.encode_inputs(aif.astype(np.float32, copy=False).transpose(0, 3, 1, 2), coc_px[:, None])
         feeds = {
             # float32 throughout: the graph takes float32, and 1 - n is exact in float32 near n = 1
-            "aif": np.ascontiguousarray(self.normalization.encode(aif.astype(np.float32, copy=False)).transpose(0, 3, 1, 2)),
-            "coc": np.ascontiguousarray((coc_px / self.coc_scale_px)[:, None], dtype=np.float32),
+            "aif": np.ascontiguousarray(colour),
+            "coc": np.ascontiguousarray(coc, dtype=np.float32),
             "tile_active": active,
         }
         if self.has_bands:
@@ -208,5 +224,5 @@ class BokehModel:
         if not (out < 1.0).all():
             where = format_location(np.unravel_index(int(np.argmax(out)), out.shape)[2:])
             raise ValueError(f"the model's output saturated (normalised value {out.max()} >= 1) at {where}")
-        linear = np.ascontiguousarray(self.normalization.decode(out).transpose(0, 2, 3, 1), dtype=np.float32)
+        linear = np.ascontiguousarray(self.contract.output_linear(out).transpose(0, 2, 3, 1), dtype=np.float32)
         return linear if batched else linear[0]

@@ -1,10 +1,10 @@
-"""Training: typed configs, the loop (single- and multi-process), checkpoints.
+"""Training: typed configs and the loop (single- and multi-process).
 
-The CLI ``train.py`` is a thin layer over :func:`neuralbokeh.training.loop.train`.
+The CLI ``train.py`` is a thin layer over :func:`neuralbokeh.training.loop.train`; checkpoints
+are :mod:`neuralbokeh.checkpoint`.
 """
 
-from ..checkpoint import load_checkpoint, load_model, save_checkpoint
 from .config import TrainConfig, load_config
 from .loop import train
 
-__all__ = ["TrainConfig", "load_checkpoint", "load_config", "load_model", "save_checkpoint", "train"]
+__all__ = ["TrainConfig", "load_config", "train"]

@@ -16,7 +16,7 @@ from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
-from ..networks.config import ARCHITECTURES, FILLS, HEADS, KERNELS, PUPIL_INITS, TILINGS
+from ..networks.config import ModelConfig
 
 
 @dataclass
@@ -36,28 +36,6 @@ class DataConfig:
     split_seed: int = 0
     normalization_scale: float = 0.18
     cache: bool = True
-
-
-@dataclass
-class ModelSection:
-    """Network hyper-parameters (see :class:`neuralbokeh.networks.ModelConfig`); the image size, the
-    CoC scale, the normalisation and the aperture come from the data. ``blocks = "auto"`` takes N
-    from the data's largest CoC."""
-
-    architecture: str = "lens"
-    blocks: int | str = "auto"
-    features: int = 12
-    tile: int = 200
-    overlap: int = 60
-    tiling: str = "overlap"
-    kernels: str = "growing"
-    head: str = "identity"
-    fft_min_kernel: int = 15
-    fft_min_kernel_train: int = 5
-    pupil_size: int = 48
-    pupil_init: str = "disk"
-    occlusion_margin_px: float = 2.0
-    fill: str = "background"
 
 
 @dataclass
@@ -107,24 +85,16 @@ class TrainSection:
 @dataclass
 class TrainConfig:
     data: DataConfig = field(default_factory=DataConfig)
-    model: ModelSection = field(default_factory=ModelSection)
+    model: ModelConfig = field(default_factory=ModelConfig)
     train: TrainSection = field(default_factory=TrainSection)
 
     def __post_init__(self) -> None:
-        d, m, t = self.data, self.model, self.train
+        d, t = self.data, self.train
         if not d.roots:
             raise ValueError("data.roots must name at least one dataset folder")
         if not (0.0 <= d.test_fraction < 1.0):
             raise ValueError(f"data.test_fraction must be in [0, 1), got {d.test_fraction}")
-        if not (isinstance(m.blocks, int) and m.blocks >= 0) and m.blocks != "auto":
-            raise ValueError(f"model.blocks must be an integer >= 0 or 'auto', got {m.blocks!r}")
         for name, value, allowed in (
-            ("model.tiling", m.tiling, TILINGS),
-            ("model.kernels", m.kernels, KERNELS),
-            ("model.head", m.head, HEADS),
-            ("model.architecture", m.architecture, ARCHITECTURES),
-            ("model.pupil_init", m.pupil_init, PUPIL_INITS),
-            ("model.fill", m.fill, FILLS),
             ("train.lr_schedule", t.lr_schedule, ("cosine", "constant")),
             ("train.lr_kernel_scaling", t.lr_kernel_scaling, ("fan_in", "none")),
             ("train.loss", t.loss, ("image", "tile")),
@@ -143,7 +113,7 @@ class TrainConfig:
         return asdict(self)
 
 
-_SECTIONS = {"data": DataConfig, "model": ModelSection, "train": TrainSection}
+_SECTIONS = {"data": DataConfig, "model": ModelConfig, "train": TrainSection}
 
 
 def _check_type(where: str, value: Any, hint: Any) -> Any:

@@ -21,11 +21,11 @@ from __future__ import annotations
 import contextlib
 import csv
 import gc
-import json
 import logging
 import math
 import os
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -37,14 +37,14 @@ from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data.distributed import DistributedSampler
 from tqdm import tqdm
 
-from ..core.apertures import ApertureModel, Gaussian
-from ..data.dataset import FocalStackDataset, Normalization
-from ..data.check import require_sound
-from ..networks import ModelConfig, build_model
-from ..networks.paper import NeuralBokeh
-from ..core.optics import blocks_for_coc
-from ..render import scatter_defocus
 from ..checkpoint import load_checkpoint, save_checkpoint
+from ..core.apertures import ApertureModel, Gaussian
+from ..core.io import write_json
+from ..core.normalization import Normalization
+from ..data.check import require_sound
+from ..data.dataset import FocalStackDataset
+from ..networks import build_model
+from ..render import scatter_defocus
 from .config import TrainConfig
 
 log = logging.getLogger(__name__)
@@ -53,30 +53,6 @@ CSV_FIELDS = [
     "step", "loss", "lr", "skipped", "eval_psnr", "eval_ssim",
     "identity_psnr", "identity_ssim", "gaussian_psnr", "gaussian_ssim", "oracle_psnr", "oracle_ssim", "elapsed_s",
 ]
-
-
-def _same_across_scenes(ds: FocalStackDataset, key: str) -> Any:
-    values = {json.dumps(m[key], sort_keys=True) for m in ds.metas}
-    if len(values) != 1:
-        raise ValueError(f"all scenes of one model must share {key!r}; found {len(values)} different ones: {sorted(values)}")
-    return ds.metas[0][key]
-
-
-def model_config_for(cfg: TrainConfig, train_ds: FocalStackDataset) -> ModelConfig:
-    """The network for this config and data (image size from the data, N from its largest CoC)."""
-    size = _same_across_scenes(train_ds, "image_size")
-    m = cfg.model
-    blocks = blocks_for_coc(train_ds.max_coc_px) if m.blocks == "auto" else int(m.blocks)
-    norm = train_ds.normalization
-    return ModelConfig(
-        image_height=size["height"], image_width=size["width"], blocks=blocks, features=m.features,
-        tile=m.tile, overlap=m.overlap, tiling=m.tiling, kernels=m.kernels, head=m.head,
-        fft_min_kernel=m.fft_min_kernel, fft_min_kernel_train=m.fft_min_kernel_train,
-        architecture=m.architecture, coc_scale_px=float(train_ds.coc_scale_px),
-        norm_scale=float(norm.scale), norm_offset=float(norm.offset), pupil_size=m.pupil_size,
-        pupil_init=m.pupil_init, occlusion_margin_px=float(m.occlusion_margin_px), fill=m.fill,
-        init_aperture=_same_across_scenes(train_ds, "aperture") if m.pupil_init == "aperture" else None,
-    )
 
 
 def compute_loss(model: torch.nn.Module, x: torch.Tensor, y: torch.Tensor, kind: str) -> torch.Tensor:
@@ -139,37 +115,44 @@ def _metrics(pred: torch.Tensor, target: torch.Tensor) -> tuple[float, float]:
 
 
 @torch.no_grad()
-def evaluate(model: NeuralBokeh, samples: _Samples, device: torch.device, baselines: dict | None = None) -> dict[str, float]:
-    """Mean PSNR/SSIM over held-out samples for the model and (computed once) the baselines."""
-    model.eval()
-    ds = samples.ds
-    norm: Normalization = ds.normalization
+def held_out_baselines(ds: FocalStackDataset, samples: _Samples | None = None,
+                       device: torch.device | None = None) -> dict[str, float]:
+    """Mean PSNR/SSIM (``identity_*``, ``gaussian_*``, ``oracle_*``) of the three baselines on a
+    held-out split, in the training metric: the AIF unchanged, the CoC-driven Gaussian scatter and
+    the scatter with each scene's own aperture (``scene.json``), all fed the held-out AIF + CoC."""
+    samples = samples or _Samples(ds, cache=False)
+    device = device or torch.device("cpu")
+    norm, scale = ds.normalization, ds.coc_scale_px
     gauss = ApertureModel(Gaussian(0.5))
-    sums = {"eval_psnr": 0.0, "eval_ssim": 0.0}
-    todo = baselines is None
-    base = {k: 0.0 for k in ("identity_psnr", "identity_ssim", "gaussian_psnr", "gaussian_ssim", "oracle_psnr", "oracle_ssim")}
+    sums = {k: 0.0 for k in ("identity_psnr", "identity_ssim", "gaussian_psnr", "gaussian_ssim", "oracle_psnr", "oracle_ssim")}
     for i in range(len(ds)):
+        x, y, _ = samples.batch([i], device)
+        exact = ApertureModel.from_dict(ds.metas[ds.items[i][0]]["aperture"])
+        linear, coc = norm.decode(x[:, :3].double()), x[:, 3:].double() * scale
+        preds = {"identity": x[:, :3], "gaussian": norm.encode(scatter_defocus(linear, coc, gauss)).float(),
+                 "oracle": norm.encode(scatter_defocus(linear, coc, exact)).float()}
+        for name, pred in preds.items():
+            p, s = _metrics(pred, y)
+            sums[f"{name}_psnr"] += p
+            sums[f"{name}_ssim"] += s
+    n = max(len(ds), 1)
+    return {k: v / n for k, v in sums.items()}
+
+
+@torch.no_grad()
+def held_out_metrics(model: torch.nn.Module, samples: _Samples, device: torch.device,
+                     baselines: dict | None = None) -> dict[str, float]:
+    """Mean PSNR/SSIM (``eval_*``) of the model over held-out samples, with the baselines of
+    :func:`held_out_baselines` (computed when not given)."""
+    model.eval()
+    sums = {"eval_psnr": 0.0, "eval_ssim": 0.0}
+    for i in range(len(samples.ds)):
         x, y, _ = samples.batch([i], device)
         p, s = _metrics(model(x), y)
         sums["eval_psnr"] += p
         sums["eval_ssim"] += s
-        if todo:
-            rgb = x[:, :3]
-            p, s = _metrics(rgb, y)
-            base["identity_psnr"] += p
-            base["identity_ssim"] += s
-            linear = norm.decode(rgb.double())
-            blurred = scatter_defocus(linear, x[:, 3:].double() * ds.coc_scale_px, gauss)
-            p, s = _metrics(norm.encode(blurred).float(), y)
-            base["gaussian_psnr"] += p
-            base["gaussian_ssim"] += s
-            exact = ApertureModel.from_dict(ds.metas[ds.items[i][0]]["aperture"])
-            p, s = _metrics(norm.encode(scatter_defocus(linear, x[:, 3:].double() * ds.coc_scale_px, exact)).float(), y)
-            base["oracle_psnr"] += p
-            base["oracle_ssim"] += s
-    n = max(len(ds), 1)
-    out = {k: v / n for k, v in sums.items()}
-    out.update(baselines if not todo else {k: v / n for k, v in base.items()})
+    out = {k: v / max(len(samples.ds), 1) for k, v in sums.items()}
+    out.update(baselines if baselines is not None else held_out_baselines(samples.ds, samples, device))
     model.train()
     return out
 
@@ -232,17 +215,11 @@ def _train(
             checkpoint from another model config, an ``out_dir`` holding another run.
         RuntimeError: ``max_nonfinite`` non-finite steps in a row.
     """
-    world = int(os.environ.get("WORLD_SIZE", "1"))
-    distributed = world > 1
-    if distributed and not dist.is_initialized():
-        dist.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
-    rank = dist.get_rank() if distributed else 0
-    local_rank = int(os.environ.get("LOCAL_RANK", "0"))
-    device = torch.device(f"cuda:{local_rank}") if torch.cuda.is_available() else torch.device("cpu")
+    proc = _Process.start()
     t = cfg.train
-    if t.batch_size % world:
-        raise ValueError(f"train.batch_size ({t.batch_size}) must be divisible by the number of processes ({world})")
-    per_rank = t.batch_size // world
+    if t.batch_size % proc.world:
+        raise ValueError(f"train.batch_size ({t.batch_size}) must be divisible by the number of processes ({proc.world})")
+    per_rank = t.batch_size // proc.world
     out_dir = Path(t.out_dir)
     held = [n for n in ("checkpoint.pt", "log.csv") if (out_dir / n).exists()]
     if held and not resume and not overwrite:
@@ -254,59 +231,42 @@ def _train(
     split = {"test_fraction": cfg.data.test_fraction, "split_seed": cfg.data.split_seed, "normalization": norm}
     train_ds = FocalStackDataset(cfg.data.roots, "train" if cfg.data.test_fraction > 0 else "all", **split)
     test_ds = FocalStackDataset(cfg.data.roots, "test", **split) if cfg.data.test_fraction > 0 else None
-    lens = _same_across_scenes(train_ds, "lens")
-    aperture = _same_across_scenes(train_ds, "aperture")
-    mcfg = model_config_for(cfg, train_ds)
+    contract = train_ds.contract()
+    mcfg = cfg.model.resolved(train_ds.max_coc_px)
 
     torch.manual_seed(t.seed)
-    model = build_model(mcfg).to(device)
+    model = build_model(mcfg, contract).to(proc.device)
     optimizer = torch.optim.Adam(param_groups(model, t.lr_kernel_scaling, t.tile_lr_scale), lr=t.lr)
     start, skipped = 0, 0
     if resume:
-        ck = load_checkpoint(resume, map_location=device)
+        ck = load_checkpoint(resume, map_location=proc.device)
         if ck["model_config"] != mcfg.to_dict():
             raise ValueError(f"checkpoint {resume} is for model {ck['model_config']}, this config builds {mcfg.to_dict()}")
         model.load_state_dict(ck["model_state"])
         optimizer.load_state_dict(ck["optimizer_state"])
         start, skipped = ck["step"], ck["skipped_steps"]
         torch.set_rng_state(ck["rng_state"])
-    net = DistributedDataParallel(model) if distributed else model
+    net = DistributedDataParallel(model) if proc.distributed else model
 
-    sampler = DistributedSampler(train_ds, num_replicas=world, rank=rank, shuffle=True, seed=t.seed, drop_last=True)
+    sampler = DistributedSampler(train_ds, num_replicas=proc.world, rank=proc.rank, shuffle=True, seed=t.seed, drop_last=True)
     steps_per_epoch = len(sampler) // per_rank
     if steps_per_epoch < 1:
         raise ValueError(f"{len(train_ds)} training samples are too few for batch_size {t.batch_size}")
     samples = _Samples(train_ds, cfg.data.cache)
     test_samples = _Samples(test_ds, cfg.data.cache) if test_ds else None
 
-    lead = rank == 0
+    lead = proc.rank == 0
+    run_log = _RunLog(out_dir, cfg, append=bool(resume)) if lead else None
     if lead:
-        out_dir.mkdir(parents=True, exist_ok=True)
-        (out_dir / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2))
-        new_log = not (resume and (out_dir / "log.csv").exists())
-        csv_file = open(out_dir / "log.csv", "w" if new_log else "a", newline="")
-        writer = csv.DictWriter(csv_file, CSV_FIELDS)
-        if new_log:
-            writer.writeheader()
-        try:
-            from torch.utils.tensorboard import SummaryWriter
-
-            board = SummaryWriter(str(out_dir / "tensorboard"))
-        except ImportError:
-            board = None
-            log.warning("TensorBoard is not installed: the curves go to %s only (pip install -e '.[tensorboard]' "
-                        "for %s)", out_dir / "log.csv", out_dir / "tensorboard")
-        log.info("model %s: %d tiles, N=%d, %d parameters", mcfg.to_dict(), mcfg.num_tiles, mcfg.blocks,
+        log.info("model %s: %d tiles, N=%d, %d parameters", mcfg.to_dict(), model.layout.num_tiles, mcfg.blocks,
                  sum(p.numel() for p in model.parameters()))
 
     def checkpoint(step: int, metrics: dict) -> Path:
         return save_checkpoint(out_dir / "checkpoint.pt", {
-            "model_config": mcfg.to_dict(), "model_state": model.state_dict(),
+            "model_config": mcfg.to_dict(), "contract": contract.to_dict(), "model_state": model.state_dict(),
             "optimizer_state": optimizer.state_dict(),
             "step": step, "skipped_steps": skipped, "rng_state": torch.get_rng_state(),
-            "train_config": cfg.to_dict(), "lens": lens, "aperture": aperture,
-            "normalization": norm.to_dict(), "coc_scale_px": train_ds.coc_scale_px,
-            "max_coc_px": train_ds.max_coc_px, "metrics": metrics,
+            "train_config": cfg.to_dict(), "metrics": metrics,
         })
 
     baselines, metrics, consecutive, order, order_epoch = None, {}, 0, [], -1
@@ -320,59 +280,32 @@ def _train(
             if epoch != order_epoch:
                 sampler.set_epoch(epoch)
                 order, order_epoch = list(sampler), epoch
-            x, y, names = samples.batch(order[pos * per_rank : (pos + 1) * per_rank], device)
-            for group in optimizer.param_groups:  # the schedule is a function of the step alone
-                group["lr"] = group["lr_scale"] * t.lr * _lr_factor(step, cfg)
-            optimizer.zero_grad(set_to_none=True)
-            loss = compute_loss(net, x, y, t.loss)
-            loss.backward()
-            finite = torch.tensor(
-                [float(torch.isfinite(loss)) * float(all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None))],
-                device=device,
-            )
-            if distributed:
-                dist.all_reduce(finite, op=dist.ReduceOp.MIN)
-            if finite.item() < 1.0:
+            x, y, names = samples.batch(order[pos * per_rank : (pos + 1) * per_rank], proc.device)
+            loss, finite = _step(net, model, optimizer, x, y, cfg, step, proc)
+            if not finite:
                 skipped += 1
                 consecutive += 1
-                optimizer.zero_grad(set_to_none=True)
                 log.warning("step %d: non-finite loss or gradient, step skipped (scenes %s)", step + 1, names)
                 if consecutive >= t.max_nonfinite:
                     raise RuntimeError(
                         f"{consecutive} non-finite steps in a row, the last at step {step + 1} "
-                        f"(batch scenes on rank {rank}: {', '.join(names)}); lower train.lr or check the data"
+                        f"(batch scenes on rank {proc.rank}: {', '.join(names)}); lower train.lr or check the data"
                     )
             else:
                 consecutive = 0
-                if t.grad_clip > 0:
-                    torch.nn.utils.clip_grad_norm_(model.parameters(), t.grad_clip)
-                optimizer.step()
             done = step = step + 1
-            if distributed and time_limit_s is not None:  # all ranks must agree on when to stop
-                elapsed = torch.tensor([time.perf_counter() - t0], dtype=torch.float64)
-                dist.broadcast(elapsed, 0)
-                out_of_time = float(elapsed) > time_limit_s
-            else:
-                out_of_time = time_limit_s is not None and time.perf_counter() - t0 > time_limit_s
-            if out_of_time:
+            if time_limit_s is not None and proc.elapsed_over(t0, time_limit_s):
                 last = done
-            row = {"step": done, "loss": loss.item(), "lr": t.lr * _lr_factor(step - 1, cfg), "skipped": skipped}
+            row = {"step": done, "loss": loss, "lr": t.lr * _lr_factor(step - 1, cfg), "skipped": skipped}
             if done % t.eval_every == 0 or done == last:
                 if lead and test_samples:
-                    metrics = evaluate(model, test_samples, device, baselines)
+                    metrics = held_out_metrics(model, test_samples, proc.device, baselines)
                     baselines = {k: v for k, v in metrics.items() if not k.startswith("eval_")}
                     row.update(metrics)
                     bar.set_postfix(psnr=f"{metrics['eval_psnr']:.2f}", gauss=f"{metrics['gaussian_psnr']:.2f}")
-                if distributed:
-                    dist.barrier()
+                proc.barrier()
             if lead:
-                row["elapsed_s"] = round(time.perf_counter() - t0, 3)
-                writer.writerow(row)
-                csv_file.flush()
-                if board:
-                    for k, v in row.items():
-                        if k != "step":
-                            board.add_scalar(k, v, done)
+                run_log.write({**row, "elapsed_s": round(time.perf_counter() - t0, 3)})
                 if done % t.checkpoint_every == 0 or done == last:
                     checkpoint(done, metrics)
             bar.update()
@@ -383,28 +316,127 @@ def _train(
         raise
     bar.close()
 
-    digests = [_digest(model)]
-    if distributed:
-        gathered: list[Any] = [None] * world
-        dist.all_gather_object(gathered, digests[0])
-        digests = gathered
     summary = {
         "checkpoint": str((out_dir / "checkpoint.pt").resolve()), "steps": last, "skipped_steps": skipped,
-        "metrics": metrics, "model": mcfg.to_dict(), "world_size": world, "rank_weight_digests": digests,
+        "metrics": metrics, "model": mcfg.to_dict(), "world_size": proc.world,
+        "rank_weight_digests": proc.gather(_digest(model)),
         "train_samples": len(train_ds), "test_samples": len(test_ds) if test_ds else 0,
         "seconds": round(time.perf_counter() - t0, 1),
     }
     if lead:
-        csv_file.close()
-        if board:
-            board.close()
-        (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
-    if distributed:
-        # DDP's reducer keeps the last gloo work objects; left alive past destroy_process_group they
-        # were freed in interpreter teardown, where gloo aborts about one run in 20 ("terminate called
-        # without an active exception"). Free the wrapper first, while the group still exists.
-        del net
-        gc.collect()
-        dist.barrier()
-        dist.destroy_process_group()
+        run_log.close()
+        write_json(out_dir / "summary.json", summary)
+    del net  # before the process group goes (see _Process.finish)
+    proc.finish()
     return summary
+
+
+def _step(net: torch.nn.Module, model: torch.nn.Module, optimizer: torch.optim.Optimizer, x: torch.Tensor, y: torch.Tensor,
+          cfg: TrainConfig, step: int, proc: _Process) -> tuple[float, bool]:
+    """One optimiser step (skipped, on every rank, when any rank's loss or gradient is not
+    finite); returns ``(loss, finite)``."""
+    t = cfg.train
+    for group in optimizer.param_groups:  # the schedule is a function of the step alone
+        group["lr"] = group["lr_scale"] * t.lr * _lr_factor(step, cfg)
+    optimizer.zero_grad(set_to_none=True)
+    loss = compute_loss(net, x, y, t.loss)
+    loss.backward()
+    finite = torch.tensor(
+        [float(torch.isfinite(loss)) * float(all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None))],
+        device=proc.device,
+    )
+    if proc.distributed:
+        dist.all_reduce(finite, op=dist.ReduceOp.MIN)
+    if finite.item() < 1.0:
+        optimizer.zero_grad(set_to_none=True)
+        return loss.item(), False
+    if t.grad_clip > 0:
+        torch.nn.utils.clip_grad_norm_(model.parameters(), t.grad_clip)
+    optimizer.step()
+    return loss.item(), True
+
+
+@dataclass
+class _Process:
+    """This process's place in a (possibly ``torchrun``) run: gloo on CPU, nccl on GPU."""
+
+    world: int
+    rank: int
+    device: torch.device
+
+    @property
+    def distributed(self) -> bool:
+        return self.world > 1
+
+    @classmethod
+    def start(cls) -> _Process:
+        world = int(os.environ.get("WORLD_SIZE", "1"))
+        if world > 1 and not dist.is_initialized():
+            dist.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
+        local_rank = int(os.environ.get("LOCAL_RANK", "0"))
+        device = torch.device(f"cuda:{local_rank}") if torch.cuda.is_available() else torch.device("cpu")
+        return cls(world, dist.get_rank() if world > 1 else 0, device)
+
+    def barrier(self) -> None:
+        if self.distributed:
+            dist.barrier()
+
+    def elapsed_over(self, t0: float, limit_s: float) -> bool:
+        """Whether rank 0 has run longer than ``limit_s`` (all ranks must agree on when to stop)."""
+        elapsed = torch.tensor([time.perf_counter() - t0], dtype=torch.float64)
+        if self.distributed:
+            dist.broadcast(elapsed, 0)
+        return float(elapsed) > limit_s
+
+    def gather(self, value: Any) -> list[Any]:
+        """``value`` of every rank, in rank order."""
+        if not self.distributed:
+            return [value]
+        gathered: list[Any] = [None] * self.world
+        dist.all_gather_object(gathered, value)
+        return gathered
+
+    def finish(self) -> None:
+        """Leave the process group. The caller drops its DDP wrapper first: DDP's reducer keeps
+        the last gloo work objects, and freed after ``destroy_process_group`` (in interpreter
+        teardown) gloo aborted about one run in 20 ("terminate called without an active
+        exception")."""
+        if self.distributed:
+            gc.collect()
+            dist.barrier()
+            dist.destroy_process_group()
+
+
+class _RunLog:
+    """Rank 0's record of a run in ``out_dir``: ``config.json``, the ``log.csv`` curve (a row per
+    step, flushed as written; appended to on resume) and TensorBoard when installed."""
+
+    def __init__(self, out_dir: Path, cfg: TrainConfig, append: bool) -> None:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        write_json(out_dir / "config.json", cfg.to_dict())
+        new_log = not (append and (out_dir / "log.csv").exists())
+        self.csv_file = open(out_dir / "log.csv", "w" if new_log else "a", newline="")
+        self.writer = csv.DictWriter(self.csv_file, CSV_FIELDS)
+        if new_log:
+            self.writer.writeheader()
+        try:
+            from torch.utils.tensorboard import SummaryWriter
+
+            self.board = SummaryWriter(str(out_dir / "tensorboard"))
+        except ImportError:
+            self.board = None
+            log.warning("TensorBoard is not installed: the curves go to %s only (pip install -e '.[tensorboard]' "
+                        "for %s)", out_dir / "log.csv", out_dir / "tensorboard")
+
+    def write(self, row: dict[str, Any]) -> None:
+        self.writer.writerow(row)
+        self.csv_file.flush()
+        if self.board:
+            for k, v in row.items():
+                if k != "step":
+                    self.board.add_scalar(k, v, row["step"])
+
+    def close(self) -> None:
+        self.csv_file.close()
+        if self.board:
+            self.board.close()

@@ -1,0 +1,197 @@
+"""One focal stack folder -> one dataset scene: the pipeline behind ``python -m data_tools.raw``
+(see its doc): decode, align, crop, resize, fuse, depth from focus, CoC maps, write."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from neuralbokeh import __version__
+from neuralbokeh.data.dataset import write_scene
+from neuralbokeh.core.io import read_image
+from neuralbokeh.core.optics import ThinLens
+
+from .align import align_stack
+from .decode import (
+    RAW_EXTENSIONS,
+    DecodeSettings,
+    RawDecodeError,
+    decode,
+    read_metadata,
+    white_balance,
+)
+from .developed import DEVELOPED_EXTENSIONS, decode_developed, exposure_gains
+from .fuse import fuse_stack
+
+log = logging.getLogger("data_tools.raw")
+
+
+def _area_resize(img: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    w, h = size
+    x = torch.from_numpy(np.ascontiguousarray(np.atleast_3d(img).transpose(2, 0, 1), dtype=np.float64))[None]
+    out = F.interpolate(x, size=(h, w), mode="area")[0].numpy().transpose(1, 2, 0)
+    return out if img.ndim == 3 else out[..., 0]
+
+
+def _focus_from_csv(path: Path) -> dict[str, float]:
+    table = {}
+    with open(path, newline="") as f:
+        for n, row in enumerate(csv.reader(f), 1):
+            if not row or row[0].startswith("#"):
+                continue
+            try:
+                table[Path(row[0].strip()).name] = float(row[1])
+            except (ValueError, IndexError):
+                if n > 1:
+                    raise ValueError(f"{path}:{n}: expected 'file,focus_m', got {row!r}") from None
+    return table
+
+
+def stack_files(folder: Path) -> tuple[list[Path], bool]:
+    """The stack's image files in name order and whether they are developed (not RAW)."""
+    visible = [p for p in sorted(folder.iterdir()) if not p.name.startswith(".")]
+    raw = [p for p in visible if p.suffix.lower() in RAW_EXTENSIONS]
+    developed = [p for p in visible if p.suffix.lower() in DEVELOPED_EXTENSIONS]
+    if raw and developed:
+        raise ValueError(f"{folder}: mixes RAW ({raw[0].name}, ...) and developed files ({developed[0].name}, ...); "
+                         "one kind per stack")
+    files = raw or developed
+    if len(files) < 2:
+        raise ValueError(f"{folder}: a focal stack needs >= 2 RAW, TIFF, PNG or JPEG files, found {len(files)}")
+    return files, not raw
+
+
+def focus_distances(files: list[Path], metas: list[dict], args: argparse.Namespace) -> list[float]:
+    if args.focus_distances or args.focus_diopters:
+        flag = "--focus-distances" if args.focus_distances else "--focus-diopters"
+        try:
+            values = [float(v) for v in (args.focus_distances or args.focus_diopters).split(",")]
+        except ValueError:
+            raise ValueError(f"{flag} must be comma-separated numbers, got {args.focus_distances or args.focus_diopters!r}") from None
+        if len(values) != len(files):
+            raise ValueError(f"{flag} has {len(values)} values for {len(files)} files in {files[0].parent}")
+        if args.focus_diopters:
+            bad = [v for v in values if not v >= 0]
+            if bad:
+                raise ValueError(f"--focus-diopters must be >= 0 (1/m; 0 = infinity), got {bad[0]}")
+            values = [float("inf") if v == 0 else 1.0 / v for v in values]
+        return values
+    if args.focus_csv:
+        table = _focus_from_csv(args.focus_csv)
+        missing = [f.name for f in files if f.name not in table]
+        if missing:
+            raise ValueError(f"{args.focus_csv} has no focus distance for {missing}")
+        return [table[f.name] for f in files]
+    missing = [f.name for f, m in zip(files, metas) if m["focus_distance_m"] is None]
+    if missing:
+        raise ValueError(f"no focus distance in the metadata of {missing}: give --focus-distances or --focus-csv")
+    return [m["focus_distance_m"] for m in metas]
+
+
+def lens_for(metas: list[dict], args: argparse.Namespace, stack: Path) -> ThinLens:
+    def pick(option: float | None, key: str, flag: str, unit: str) -> float:
+        if option is not None:
+            return option
+        values = {m[key] for m in metas if m[key] is not None}
+        if not values:
+            raise ValueError(f"{stack}: no {key.replace('_', ' ')} in the metadata: give {flag} ({unit})")
+        if len(values) > 1:
+            raise ValueError(f"{stack}: the files disagree on {key} ({sorted(values)}): give {flag}")
+        return values.pop()
+
+    if args.sensor_width is None:
+        raise ValueError("cameras do not record the sensor width: give --sensor-width (mm, long side)")
+    return ThinLens(pick(args.focal_length, "focal_length_mm", "--focal-length", "mm"),
+                    pick(args.f_number, "f_number", "--f-number", "f-number"), args.sensor_width)
+
+
+def process_stack(stack: Path, out: Path, args: argparse.Namespace, failures: list[str]) -> dict[str, Any] | None:
+    """Decode, align, fuse and write one stack; returns a summary (None if skipped)."""
+    folder = out / stack.name
+    if folder.exists():
+        return None
+    files, developed = stack_files(stack)
+    metas = [read_metadata(f) for f in files]
+    focus = focus_distances(files, metas, args)
+    bad = [(f.name, d) for f, d in zip(files, focus) if not d > 0]
+    if bad:
+        raise ValueError(f"{stack}: focus distances must be > 0 m (inf allowed), got {bad}")
+    order = sorted(range(len(files)), key=lambda i: focus[i])  # near to far: neighbours are defocused alike
+    files, metas, focus = [files[i] for i in order], [metas[i] for i in order], [focus[i] for i in order]
+    lens = lens_for(metas, args, stack)
+    settings = DecodeSettings(args.demosaic, args.half_size)
+    ref = len(files) // 2
+    wb = None if developed else white_balance(files[ref], args.white_balance)
+    images, kept = [], []
+    for f, fm in zip(files, focus):
+        try:
+            images.append(decode_developed(f, args.transfer) if developed else decode(f, wb, settings))
+            kept.append((f, fm))
+        except RawDecodeError as e:
+            failures.append(str(e))
+            log.error("%s", e)
+    if len(images) < 2:
+        raise ValueError(f"{stack}: fewer than 2 usable slices")
+    shapes = {im.shape for im in images}
+    if len(shapes) != 1:
+        raise ValueError(f"{stack}: slices have different sizes {sorted(shapes)}")
+    decoded_h, decoded_w = images[0].shape[:2]
+    ref = len(images) // 2  # the middle of the usable slices
+    gains = exposure_gains(images, ref) if developed else [1.0] * len(images)
+    if developed:
+        images = [im * np.float32(g) for im, g in zip(images, gains)]
+        log.info("%s: exposure gains against slice %d: %s", stack, ref, ", ".join(f"{g:.3f}" for g in gains))
+    y = images[ref].mean()
+    if y <= 0:
+        raise ValueError(f"{stack}: the reference slice {kept[ref][0].name} is black")
+    exposure = 0.18 / float(y)
+    images = [im * exposure for im in images]
+    if args.no_align:
+        aligned, info, crop = images, [], (slice(0, decoded_h), slice(0, decoded_w))
+    else:
+        aligned, info, crop = align_stack(images, ref, rotation=args.rotation)
+    crop_h, crop_w = aligned[0].shape[:2]
+    size = tuple(args.size) if args.size else (crop_w, crop_h)
+    if size != (crop_w, crop_h):
+        aligned = [_area_resize(a, size) for a in aligned]
+    focus_kept = [fm for _, fm in kept]
+    if args.depth:
+        depth_in = read_image(args.depth)[..., 0].astype(np.float64)
+        if depth_in.shape != (decoded_h, decoded_w):
+            raise ValueError(f"--depth {args.depth} is {depth_in.shape[1]}x{depth_in.shape[0]}, the decoded stack "
+                             f"{decoded_w}x{decoded_h}")
+        with np.errstate(divide="ignore"):
+            dio = _area_resize(1.0 / depth_in[crop], size)  # average in diopters: inf depth -> 0
+        fused = fuse_stack(aligned, focus_kept, args.window, known_diopters=dio)
+    else:
+        fused = fuse_stack(aligned, focus_kept, args.window)
+    # the scene's lens: the cropped sensor mapped onto the output width (CoC in output pixels)
+    long_side = max(decoded_h, decoded_w)
+    pitch_mm = lens.sensor_width_mm / long_side * (crop_w / size[0])
+    scene_lens = ThinLens(lens.focal_length_mm, lens.f_number, pitch_mm * size[0])
+    cocs = [scene_lens.coc_px(fused.depth_m.astype(np.float64), fm, size[0], signed=True) for fm in focus_kept]
+    generator = {
+        "name": "data_tools.raw", "version": __version__, "stack": str(stack),
+        "files": [f.name for f, _ in kept], "failed": [s for s in failures if str(stack) in s],
+        "metadata": [m for m, f in zip(metas, files) if f in {k for k, _ in kept}],
+        "source": "developed" if developed else "raw",
+        "white_balance": None if wb is None else list(wb), "exposure_factor": exposure,
+        "transfer": args.transfer if developed else None, "exposure_gains": gains,
+        "demosaic": None if developed else settings.demosaic, "half_size": settings.half_size, "reference_slice": ref,
+        "alignment": [a.to_dict() for a in info], "crop": {"rows": [crop[0].start, crop[0].stop],
+                                                           "cols": [crop[1].start, crop[1].stop]},
+        "output_size": list(size), "depth_source": str(args.depth) if args.depth else "depth from focus",
+        "depth_confidence_mean": float(fused.confidence.mean()), "sensor_width_mm_given": lens.sensor_width_mm,
+    }
+    write_scene(folder, fused.aif.astype(np.float64), fused.depth_m.astype(np.float64),
+                [a.astype(np.float64) for a in aligned], cocs, scene_lens, focus_kept, None, generator)
+    residual = max((a.residual_px for a in info), default=0.0)
+    return {"stack": stack.name, "slices": len(aligned), "size": size, "residual_px": residual,
+            "max_coc_px": float(max(np.abs(c).max() for c in cocs))}
