@@ -165,3 +165,36 @@ def test_multires_export_matches_its_pytorch_reference(busy_checkpoint, tmp_path
         want, exact = model(x, scales=scales).numpy(), model(x).numpy()
     assert np.abs(got - want).max() < 1e-4
     assert np.abs(got - exact).max() > 1e-4
+
+
+def test_files_of_format_1_are_read_and_upgraded(busy_checkpoint, busy_onnx, tmp_path):
+    """Checkpoints and ONNX files written before the data contract (loose keys, data fields in the
+    model config) load to the same contract and the same outputs."""
+    from neuralbokeh.runtime import OnnxBokeh
+
+    model, ckpt = load_model(busy_checkpoint)
+    c = ckpt["contract"]
+    legacy_cfg = {**ckpt["model_config"], "image_height": c["image_size"]["height"], "image_width": c["image_size"]["width"],
+                  "coc_scale_px": c["coc_scale_px"], "norm_scale": c["normalization"]["scale"],
+                  "norm_offset": c["normalization"]["offset"], "init_aperture": None}
+    legacy_cfg["kernels"] = legacy_cfg.pop("kernel_sizes")
+    loose = {k: c[k] for k in ("normalization", "coc_scale_px", "max_coc_px", "lens", "aperture")}
+    old = {k: v for k, v in ckpt.items() if k != "contract"} | {"format_version": 1, "model_config": legacy_cfg} | loose
+    torch.save(old, tmp_path / "v1.pt")
+    again, upgraded = load_model(tmp_path / "v1.pt")
+    assert again.contract == model.contract and upgraded["contract"] == c
+    x = calibration_inputs(*model.contract.size, count=1, seed=2)
+    with torch.no_grad():
+        assert torch.equal(again(x), model(x))
+
+    proto = onnx.load(busy_onnx)
+    meta = json.loads(proto.metadata_props[0].value)
+    meta = {k: v for k, v in meta.items() if k != "contract"} | {"format_version": 1, "model_config": legacy_cfg, **loose,
+                                                                   "image_size": c["image_size"]}
+    proto.metadata_props[0].value = json.dumps(meta)
+    onnx.save(proto, tmp_path / "v1.onnx")
+    m_old, m_new = OnnxBokeh(tmp_path / "v1.onnx", threads=1), OnnxBokeh(busy_onnx, threads=1)
+    assert m_old.contract == m_new.contract
+    aif = np.full((m_new.height, m_new.width, 3), 0.3, np.float32)
+    coc = np.linspace(-1, 1, m_new.height * m_new.width).reshape(m_new.height, m_new.width) * m_new.contract.max_coc_px
+    np.testing.assert_array_equal(m_old.render_coc(aif, coc), m_new.render_coc(aif, coc))
