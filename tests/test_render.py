@@ -7,7 +7,8 @@ import torch.nn.functional as F
 
 from neuralbokeh.core.apertures import ApertureModel, Disk, Heart, Polygon, Star, shape_kernel
 from neuralbokeh.core.optics import ThinLens
-from neuralbokeh.render import fft_convolve2d, render_defocus, scatter_defocus, scatter_layers
+from neuralbokeh.ops.fftconv import fft_convolve2d
+from neuralbokeh.render import render_defocus, scatter_defocus, scatter_layers
 from neuralbokeh.ops.holes import hidden_background
 from neuralbokeh.render.scatter import auto_field_grid
 from neuralbokeh.render.reference import reference_scatter_defocus, reference_scatter_layers

@@ -16,7 +16,7 @@ point-reflected), and the near / same-surface / far bucket weights at full resol
 convolved on a grid ``s`` = 2, 4 or 8 times coarser: box-averaged features (``AveragePool``),
 the kernel binned by :func:`~neuralbokeh.networks.lens.reduce_kernel`, bilinear upsampling
 (``Resize``, half-pixel). A convolution then costs ``1 / s^4`` of the direct one. What it costs
-in accuracy, stated in ``tests/test_lensnet.py``: flux kept, light moved by at most
+in accuracy, stated in ``tests/test_lens_network.py``: flux kept, light moved by at most
 ``(s - 1) / 2`` px and widened by at most ``s^2`` px^2 of variance; the PSNR against the direct
 export is measured by ``benchmarks/bench_runtime.py``. ``LensBokeh.forward(x, scales=...)`` is
 the PyTorch reference the export is checked against.

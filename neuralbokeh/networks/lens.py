@@ -170,7 +170,7 @@ def _prior_shape(cfg: Any, aperture: dict | None) -> Aperture:
     if cfg.pupil_init == "gaussian":
         return Gaussian(0.5)
     if not aperture:
-        raise ValueError("pupil_init = 'aperture' needs the data's aperture (init_aperture), got none")
+        raise ValueError("pupil_init = 'aperture' needs the data's aperture (the contract's aperture), got none")
     return aperture_from_dict(aperture["shape"])
 
 

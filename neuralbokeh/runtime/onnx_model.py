@@ -155,7 +155,7 @@ class OnnxBokeh:
         if not self.skip_in_focus or blocks == 0 or step <= 0:
             return np.ones_like(flags) if not self.skip_in_focus else flags
         c = np.asarray(coc_px, dtype=np.float32)
-        # lensnet.band_position in numpy (the runtime never imports torch)
+        # networks.lens.band_position in numpy (the runtime never imports torch)
         pos = np.clip((np.abs(c) - 1.0) / step, 0.0, blocks)
         width = blocks + 2
         side = np.where(c > 0, 0, np.where(c < 0, width, 2 * width)).astype(np.int32)  # 2 width: in focus, scatters nothing
