@@ -16,6 +16,13 @@ For each case the script renders Mitsuba's thin-lens defocus (the truth; the AIF
 depth once), then feeds the AIF + CoC to identity, the CoC Gaussian, the naive gather and the
 scatter with the true aperture, and prints linear / sRGB PSNR and seconds.
 
+Overscan (``--overscan M``, default 24 px, half the largest CoC): the truth, the AIF and the depth
+are rendered M px wider on every side (the same scene, camera and pixel pitch) and every method
+gets the wider AIF + CoC; scores are taken on the original frame. Without it, the blur that
+spills into the frame from outside it (the floor closest to the camera has a 47 px CoC) is
+unknown to every method and dominates their errors at the frame's edge (``--overscan 0``
+measures that too).
+
 The truth is a Monte-Carlo estimate, and its noise caps every PSNR: differences between good
 methods shrink. ``--truth-renders K`` (K >= 2) renders it K times with independent seeds,
 scores against their mean, and adds a column: the linear PSNR against the *noise-free* image,
@@ -68,9 +75,10 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--size", type=int, nargs=2, default=(256, 192))
     p.add_argument("--spp", type=int, default=8192, help="samples per pixel of the Mitsuba defocus (the truth)")
-    p.add_argument("--steps", type=float, nargs="+", default=[0.25, 1.0, 2.0])
-    p.add_argument("--jumps", type=float, nargs="+", default=[1.0, 2.0, 8.0])
+    p.add_argument("--steps", type=float, nargs="*", default=[0.25, 1.0, 2.0], help="coc_step sweep (none: skip)")
+    p.add_argument("--jumps", type=float, nargs="*", default=[1.0, 2.0, 8.0], help="jump_px sweep (none: skip)")
     p.add_argument("--cases", nargs="+", choices=["fg", "bg"], default=["fg", "bg"], help="blurred foreground, blurred background")
+    p.add_argument("--overscan", type=int, default=24, help="px rendered beyond the frame on every side and given to every method")
     p.add_argument("--truth-renders", type=int, default=1, help="independent truth renders (>= 2: noise-corrected PSNR column)")
     p.add_argument("--seed", type=int, default=3)
     p.add_argument("--variant", default=None)
@@ -78,47 +86,52 @@ def main() -> None:
     args = p.parse_args()
     mi = activate(args.variant)
     w, h = args.size
-    lens = ThinLens(85.0, 1.4, 36.0)
+    m = args.overscan
     cam = axis_camera(mi, 85.0, 36.0, w, h)
-    desc = occlusion_scene(mi, cam, args.seed)
+    desc = occlusion_scene(mi, cam, args.seed)  # the scene is placed for the frame itself
+    # the same pixel pitch over a wider film: the frame is the centre crop [m:m+h, m:m+w]
+    lens = ThinLens(85.0, 1.4, 36.0 * (w + 2 * m) / w)
+    cam = axis_camera(mi, 85.0, lens.sensor_width_mm, w + 2 * m, h + 2 * m)
+    crop = (slice(m, m + h), slice(m, m + w))
     scene = mi.load_dict(desc)
     if args.save:
         plate = {k: v for k, v in desc.items() if k in ("type", "integrator", "environment", "wall", "floor")}
-        np.save(args.save / "plate.npy", render_aif(mi, mi.load_dict(plate), cam, 256))
+        np.save(args.save / "plate.npy", render_aif(mi, mi.load_dict(plate), cam, 256)[crop])
     aif, depth = render_aif(mi, scene, cam, 1024), render_depth(mi, scene, cam)
     aperture = ApertureModel()
     table = methods(aperture, args.steps, args.jumps)
-    print(f"mitsuba {mi.__version__} {mi.variant()}; {w}x{h}, 85 mm f/1.4, disk; truth {args.spp} spp thin-lens")
+    print(f"mitsuba {mi.__version__} {mi.variant()}; {w}x{h} (+{m} px overscan), 85 mm f/1.4, disk; truth {args.spp} spp thin-lens")
     if args.save:
         from neuralbokeh.core.io import write_image
     cases = {"fg": ("fg blurred", OCCLUSION_WALL_M), "bg": ("bg blurred", OCCLUSION_FG_FOCUS_M)}
     for case, focus in (cases[c] for c in args.cases):
-        coc = lens.coc_px(depth, focus, w, signed=True)
+        coc = lens.coc_px(depth, focus, w + 2 * m, signed=True)
         t0 = time.perf_counter()
-        renders = [mitsuba_defocus(mi, scene, cam, lens, aperture, focus, args.spp, seed=17 + i).image
+        renders = [mitsuba_defocus(mi, scene, cam, lens, aperture, focus, args.spp, seed=17 + i).image[crop]
                    for i in range(args.truth_renders)]
         truth = np.mean(renders, axis=0)
         peak = float(truth.max()) or 1.0
         # the variance of the mean's noise, per pixel, in peak-normalised linear units
         noise = float(np.mean(np.var(np.stack(renders) / peak, axis=0, ddof=1) / len(renders))) if len(renders) > 1 else None
-        print(f"\n{case}: focus {focus} m, CoC {coc.min():.1f} .. {coc.max():.1f} px, truth ({len(renders)} x {args.spp} spp) "
+        print(f"\n{case}: focus {focus} m, CoC {coc[crop].min():.1f} .. {coc[crop].max():.1f} px, truth ({len(renders)} x {args.spp} spp) "
               f"in {time.perf_counter() - t0:.0f} s" + (f"; its own noise caps linear PSNR at {-10 * np.log10(noise):.2f} dB"
                                                           if noise else ""))
         if args.save:
-            write_image(args.save / f"{case.replace(' ', '_')}_truth.exr", truth)
-            write_image(args.save / "aif.exr", aif)
+            for i, r in enumerate(renders):
+                write_image(args.save / f"{case.replace(' ', '_')}_truth_{i}.exr", r)
+            write_image(args.save / "aif.exr", aif)  # with the overscan
             np.save(args.save / "depth.npy", depth)
         print(f"{'method':<24} {'PSNR lin':>9} {'PSNR sRGB':>10} {'seconds':>8}" + (f" {'lin, noise-free est.':>21}" if noise else ""))
         for name, fn in table.items():
             t0 = time.perf_counter()
-            pred = fn(aif, coc)
+            pred = np.asarray(fn(aif, coc))[crop]
             sec = time.perf_counter() - t0
-            m = image_metrics(np.asarray(pred), truth)
+            q = image_metrics(pred, truth)
             extra = ""
             if noise:
-                mse = float(np.mean((np.asarray(pred, dtype=np.float64) / peak - truth / peak) ** 2)) - noise
+                mse = float(np.mean((pred.astype(np.float64) / peak - truth / peak) ** 2)) - noise
                 extra = f" {-10 * np.log10(mse):>21.2f}" if mse > 0 else f" {'(below the noise)':>21}"
-            print(f"{name:<24} {m['psnr_linear']:>9.2f} {m['psnr_srgb']:>10.2f} {sec:>8.2f}{extra}", flush=True)
+            print(f"{name:<24} {q['psnr_linear']:>9.2f} {q['psnr_srgb']:>10.2f} {sec:>8.2f}{extra}", flush=True)
 
 
 if __name__ == "__main__":

@@ -99,6 +99,12 @@ class ModelConfig:
 
         return self if self.blocks != "auto" else replace(self, blocks=blocks_for_coc(max_coc_px))
 
+    def check_resolved(self) -> None:
+        """Raise ``ValueError`` while ``blocks`` is still ``"auto"`` (a network needs N)."""
+        if not isinstance(self.blocks, int):
+            raise ValueError(f"model.blocks must be resolved to an integer before building a network "
+                             f"(ModelConfig.resolved), got {self.blocks!r}")
+
     def layout(self, height: int, width: int) -> TileLayout:
         """The tile grid over an ``height x width`` image."""
         return TileLayout.for_image(height, width, self.tile, self.overlap, self.tiling)

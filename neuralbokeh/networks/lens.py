@@ -199,8 +199,7 @@ class LensBokeh(nn.Module):
 
     def __init__(self, config: ModelConfig, contract: Contract) -> None:
         super().__init__()
-        if not isinstance(config.blocks, int):
-            raise ValueError(f"model.blocks must be resolved to an integer before building (ModelConfig.resolved), got {config.blocks!r}")
+        config.check_resolved()
         self.config, self.contract = config, contract
         cfg = config
         self.layout = layout = config.layout(*contract.size)

@@ -95,8 +95,7 @@ class PaperBokeh(nn.Module):
 
     def __init__(self, config: ModelConfig, contract: Contract) -> None:
         super().__init__()
-        if not isinstance(config.blocks, int):
-            raise ValueError(f"model.blocks must be resolved to an integer before building (ModelConfig.resolved), got {config.blocks!r}")
+        config.check_resolved()
         self.config, self.contract = config, contract
         self.layout = config.layout(*contract.size)
         n, f = self.layout.num_tiles, config.features
