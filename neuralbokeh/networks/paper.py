@@ -11,7 +11,7 @@ Input ``(B, 4, H, W)``: normalised all-in-focus RGB in [-1, 1) and the CoC map s
    one group per tile).
 2. ``C1`` (1x1, 4 -> ``features``) -> residual blocks ``R_1 .. R_N``; block n is
    ``x + conv_b(relu(conv_a(x)))`` with per-channel convolutions of size ``2n + 1``
-   (``kernels = "fixed3"``: all 3x3, the paper's ablation) -> concatenation with the window's
+   (``kernel_sizes = "fixed3"``: all 3x3, the paper's ablation) -> concatenation with the window's
    RGB -> ``C2`` (1x1, ``features + 3`` -> 3) -> tanh.
 3. Windows are put back in place and overlaps averaged (exactly: see :func:`untile`).
 
