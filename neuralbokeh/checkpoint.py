@@ -58,6 +58,7 @@ def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = 
     version = data.get("format_version")
     if version == 1:  # the contract as loose keys beside a model config holding the image size
         data["contract"] = Contract.from_legacy(data, data["model_config"]).to_dict()
+        data["model_config"] = ModelConfig.from_dict(data["model_config"]).to_dict()  # one form, e.g. for resume
         data["format_version"] = FORMAT_VERSION
     elif version != FORMAT_VERSION:
         raise ValueError(f"{path}: checkpoint format_version {version} is not supported (1..{FORMAT_VERSION})")

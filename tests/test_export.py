@@ -183,6 +183,7 @@ def test_files_of_format_1_are_read_and_upgraded(busy_checkpoint, busy_onnx, tmp
     torch.save(old, tmp_path / "v1.pt")
     again, upgraded = load_model(tmp_path / "v1.pt")
     assert again.contract == model.contract and upgraded["contract"] == c
+    assert upgraded["model_config"] == ckpt["model_config"]  # upgraded too: a format-1 run can be resumed
     x = calibration_inputs(*model.contract.size, count=1, seed=2)
     with torch.no_grad():
         assert torch.equal(again(x), model(x))

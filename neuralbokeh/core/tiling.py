@@ -81,3 +81,8 @@ class TileLayout(NamedTuple):
             c0, c1 = (0 if j == 0 else t_o), (win if j == self.cols - 1 else t_o + t)
             masks[k, r0:r1, c0:c1] = 1.0
         return masks
+
+
+def pyramid_levels(height: int, width: int) -> int:
+    """Levels ``L`` of the pull-push pyramid: the image fits a ``2^L`` square."""
+    return max(0, math.ceil(math.log2(max(height, width))))

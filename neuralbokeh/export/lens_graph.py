@@ -40,8 +40,8 @@ from onnx import TensorProto, helper
 
 from ..core.contract import Contract
 from ..core.normalization import Normalization
+from ..core.tiling import pyramid_levels
 from ..networks.config import ModelConfig
-from ..ops.holes import pyramid_levels
 from .graph import GraphBuilder, finish_model
 
 _EPS = 1e-8

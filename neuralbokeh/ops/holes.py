@@ -23,6 +23,7 @@ import torch
 import torch.nn.functional as F
 
 from ..core.checks import check_nonnegative, check_positive, check_shape
+from ..core.tiling import pyramid_levels
 
 
 def occluders(coc: torch.Tensor, radius_px: int, jump_px: float = 4.0) -> torch.Tensor:
@@ -68,11 +69,6 @@ def push_pull_fill(image: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
     pad = (0, side - w, 0, side - h)
     filled = _pull_push(F.pad(image, pad), F.pad(weight.to(image.dtype), pad))
     return filled[..., :h, :w]
-
-
-def pyramid_levels(height: int, width: int) -> int:
-    """Levels ``L`` of the pull-push pyramid: the image fits a ``2^L`` square."""
-    return max(0, math.ceil(math.log2(max(height, width))))
 
 
 def _pull_push(image: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
