@@ -28,8 +28,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="float16 convolutions (paper network: weights and trunk, C2, tanh and head stay float32; "
                         "lens network: the band convolutions)")
     p.add_argument("--kernels", default=None,
-                   help=f"lens network: direct | multires:PX (bands convolved on grids 2, 4 or 8 times coarser where their "
-                        f"CoC stays >= PX coarse px wide; default {LENS_DEFAULT_KERNELS}). Paper network: direct | lowrank:R | "
+                   help=f"lens network: direct | rows (the same convolutions as row GEMMs, faster) | multires:PX (rows; "
+                        f"bands convolved on grids 2, 4 or 8 times coarser where their CoC stays >= PX coarse px wide; "
+                        f"default {LENS_DEFAULT_KERNELS}). Paper network: direct | lowrank:R | "
                         "auto:EPS (per convolution the smallest separable rank whose effect on the model's output is within "
                         f"EPS / sqrt(#convolutions); default {DEFAULT_KERNELS})")
     p.add_argument("--tolerance", type=float, help="max abs parity error, normalised units (default 1e-4; 2e-2 with --fp16)")

@@ -1,14 +1,15 @@
 """Compositing speed at 1080p: the torch-free runtime against PyTorch and the classical scatters.
 
-    python benchmarks/bench_runtime.py                  # ~20 min on 2 cores (exports included)
+    python benchmarks/bench_runtime.py                  # ~35 min on 2 cores (exports included)
     python benchmarks/bench_runtime.py --reuse          # keep the exports of an earlier run
 
 The model: a lens network (``architecture = "lens"``) built for 1920x1080 with k_max = 41
 (coc_scale_px 41, N = 20 blocks), 240 px tiles with 24 px overlap, *initialised from the lens
 prior* (``pupil_init = "aperture"``: a 7-blade aperture), not trained: training at 1080p is out
-of reach on a CPU, and the run time does not depend on the weights. It is exported three ways:
-the default (``multires:10``), the direct-convolution export (``--kernels direct``) and the
-default in float16.
+of reach on a CPU, and the run time does not depend on the weights. It is exported four ways:
+the default (``multires:10``), the direct-convolution export (``--kernels direct``, one depthwise
+``Conv`` per band: the reference), ``rows`` (the same convolutions as row GEMMs: exact, at full
+resolution) and the default in float16.
 
 The frame: a procedural layered scene (``data_tools.procedural``, seed ``--seed``) at 1920x1080,
 its CoC from a 50 mm lens on a 36 mm sensor focused at the 30 % depth quantile, the f-number
@@ -80,7 +81,7 @@ def _peak_rss_mb() -> float:
 
 
 def make_model(out: Path, reuse: bool) -> dict[str, Path]:
-    """The prior-initialised checkpoint and its three exports."""
+    """The prior-initialised checkpoint and its four exports."""
     import torch
 
     from neuralbokeh.checkpoint import save_checkpoint
@@ -101,7 +102,8 @@ def make_model(out: Path, reuse: bool) -> dict[str, Path]:
         save_checkpoint(ckpt, {"model_config": cfg.to_dict(), "contract": contract.to_dict(),
                                "model_state": build_model(cfg, contract).state_dict(), "step": 0})
     paths = {"checkpoint": ckpt}
-    for name, kernels, fp16 in (("default", None, False), ("direct", "direct", False), ("default_fp16", None, True)):
+    for name, kernels, fp16 in (("default", None, False), ("direct", "direct", False), ("rows", "rows", False),
+                                ("default_fp16", None, True)):
         path = out / f"{name}.onnx"
         if not (reuse and path.exists()):
             t = time.perf_counter()
@@ -246,12 +248,15 @@ def main() -> None:
             ("runtime, default export, 1 thread", f"onnx:{paths['default']}", "full", 1),
             ("runtime, default export, fp16", f"onnx:{paths['default_fp16']}", "full", args.threads),
             ("runtime, direct-convolution export", f"onnx:{paths['direct']}", "full", args.threads),
+            ("runtime, rows export (exact)", f"onnx:{paths['rows']}", "full", args.threads),
             ("PyTorch eager (FFT, exact)", f"eager:{paths['checkpoint']}", "full", args.threads),
             ("exact-aperture scatter (7-gon)", "scatter", "full", args.threads),
             ("CoC Gaussian scatter", "gaussian", "full", args.threads),
             ("runtime, default, max CoC / 3", f"onnx:{paths['default']}", "third", args.threads),
             ("runtime, default, half in focus", f"onnx:{paths['default']}", "half_in_focus", args.threads),
-            ("runtime, direct, max CoC / 3", f"onnx:{paths['direct']}", "third", args.threads)]
+            ("runtime, direct, max CoC / 3", f"onnx:{paths['direct']}", "third", args.threads),
+            ("runtime, rows, max CoC / 3", f"onnx:{paths['rows']}", "third", args.threads),
+            ("runtime, rows, half in focus", f"onnx:{paths['rows']}", "half_in_focus", args.threads)]
     results = {}
     for label, spec, frame, threads in rows:
         out = args.out_dir / f"out_{len(results)}.npy"
@@ -277,6 +282,10 @@ def main() -> None:
     print(f"max CoC / 3: default {default / ms['runtime, default, max CoC / 3']:.2f}x faster than the full frame "
           f"(direct: {ms['runtime, direct-convolution export'] / ms['runtime, direct, max CoC / 3']:.2f}x); "
           f"half in focus: {default / ms['runtime, default, half in focus']:.2f}x faster")
+    rows_full = ms["runtime, rows export (exact)"]
+    print(f"rows export (exact): {ms['runtime, direct-convolution export'] / rows_full:.1f}x faster than the direct export; "
+          f"max CoC / 3 {rows_full / ms['runtime, rows, max CoC / 3']:.2f}x, half in focus "
+          f"{rows_full / ms['runtime, rows, half in focus']:.2f}x faster than its full frame")
 
 
 if __name__ == "__main__":

@@ -143,7 +143,7 @@ def test_real_trained_checkpoint_exports(trained_checkpoint, tmp_path):
 
 def test_lens_network_exports_multires_by_default_and_refuses_lowrank(busy_checkpoint, tmp_path):
     for bad in ("lowrank:2", "auto:0.01", "multires:0", "multires:x"):
-        with pytest.raises(ValueError, match="'direct' or 'multires:PX'"):
+        with pytest.raises(ValueError, match="'direct', 'rows' or 'multires:PX'"):
             export_checkpoint(busy_checkpoint, tmp_path / "x.onnx", kernels=bad, threads=1)
     assert not (tmp_path / "x.onnx").exists()  # nothing was written
     report = export_checkpoint(busy_checkpoint, tmp_path / "d.onnx", threads=1)
@@ -165,6 +165,47 @@ def test_multires_export_matches_its_pytorch_reference(busy_checkpoint, tmp_path
         want, exact = model(x, scales=scales).numpy(), model(x).numpy()
     assert np.abs(got - want).max() < 1e-4
     assert np.abs(got - exact).max() > 1e-4
+
+
+@pytest.mark.parametrize("k, size, channels", [(3, 5, 6), (7, 12, 6), (15, 9, 2), (21, 16, 3)])
+def test_row_convolution_is_the_depthwise_convolution(k, size, channels):
+    """``_conv_rows`` (row GEMMs + Col2Im) against torch's depthwise conv2d, 'same' size and
+    zero padding, kernels wider than the image included: equal to float32 rounding."""
+    from onnx import TensorProto, helper
+
+    from neuralbokeh.export.graph import GraphBuilder
+    from neuralbokeh.export.lens_graph import _conv_rows, _Nodes
+
+    gen = torch.Generator().manual_seed(k)
+    x = torch.rand(2, channels, size, size, generator=gen)
+    w = torch.rand(channels, 1, k, k, generator=gen) - 0.3  # asymmetric, signed: a flipped row would show
+    g = _Nodes(GraphBuilder(), "t")
+    out = _conv_rows(g, "x", w.numpy(), size, fp16=False)
+    g.nodes.append(helper.make_node("Identity", [out], ["y"]))
+    graph = helper.make_graph(g.nodes, "rows", [helper.make_tensor_value_info("x", TensorProto.FLOAT, [2, channels, size, size])],
+                              [helper.make_tensor_value_info("y", TensorProto.FLOAT, None)], g.b.initializers)
+    from neuralbokeh.runtime.onnx_model import make_session
+
+    sess = make_session(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)]).SerializeToString(), threads=1)
+    got = sess.run(None, {"x": x.numpy()})[0]
+    want = torch.nn.functional.conv2d(x, w, padding=k // 2, groups=channels).numpy()
+    assert got.shape == want.shape
+    np.testing.assert_allclose(got, want, rtol=0, atol=2e-6 * np.abs(want).max())
+
+
+def test_rows_export_is_the_direct_export(busy_checkpoint, tmp_path):
+    """``rows`` and ``direct`` compute the same sums (no approximation); fp16 rows stays within
+    the fp16 tolerance."""
+    model, _ = load_model(busy_checkpoint)
+    report = export_checkpoint(busy_checkpoint, tmp_path / "r.onnx", kernels="rows", threads=1)
+    assert max(report["parity"].values()) <= 1e-4 and max(report["approximation"].values()) == 0.0
+    export_checkpoint(busy_checkpoint, tmp_path / "d.onnx", kernels="direct", threads=1)
+    x = calibration_inputs(*model.contract.size, count=2, seed=4)
+    rows = _run_onnx(tmp_path / "r.onnx", x[:, :3].numpy(), x[:, 3:].numpy())
+    direct = _run_onnx(tmp_path / "d.onnx", x[:, :3].numpy(), x[:, 3:].numpy())
+    assert np.abs(rows - direct).max() < 1e-5
+    half = export_checkpoint(busy_checkpoint, tmp_path / "h.onnx", kernels="rows", fp16=True, threads=1)
+    assert max(half["parity"].values()) <= 2e-2
 
 
 def test_files_of_format_1_are_read_and_upgraded(busy_checkpoint, busy_onnx, tmp_path):

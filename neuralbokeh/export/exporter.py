@@ -176,7 +176,8 @@ def export_checkpoint(
         opset: ONNX opset (default and minimum: 17 for the paper network, 18 for the lens network).
         fp16: float16 trunk (see ``graph.py``) or band convolutions (``lens_graph.py``).
         kernels: paper network: ``direct``, ``lowrank:R`` or ``auto:EPS`` (see ``lowrank.py``;
-            default ``DEFAULT_KERNELS``); lens network: ``direct`` or ``multires:PX`` (bands
+            default ``DEFAULT_KERNELS``); lens network: ``direct`` (depthwise ``Conv``, the
+            reference), ``rows`` (the same sums as row GEMMs) or ``multires:PX`` (as rows; bands
             whose CoC is wide enough convolved on grids 2, 4 or 8 times coarser, keeping the CoC
             at least PX coarse pixels wide; default ``LENS_DEFAULT_KERNELS``).
         tolerance: max abs parity error in normalised units (default 1e-4 fp32, 2e-2 fp16).
@@ -198,7 +199,8 @@ def export_checkpoint(
     opset = (18 if lens else 17) if opset is None else opset
     if lens:  # per-band kernels rasterised from the learned pupils, direct or on coarser grids
         kernels = LENS_DEFAULT_KERNELS if kernels is None else kernels
-        scales = band_scales(model.diameters, parse_lens_kernels(kernels))
+        spec = parse_lens_kernels(kernels)
+        scales = band_scales(model.diameters, spec.min_px)
         factors = {}
         kernel_report = {f"band{n}": {"k": cfg.kernel_size(n), "rank": 0, "scale": scales[n]} for n in range(1, cfg.blocks + 1)}
     else:
@@ -218,7 +220,7 @@ def export_checkpoint(
     if lens:
         with torch.no_grad():
             band_kernels = {n: reduce_kernel(model.kernels(n).double(), scales[n]).numpy() for n in range(1, cfg.blocks + 1)}
-        onnx_model = build_lens_graph(band_kernels, model.diameters, cfg, model.contract, fp16, opset, props, scales)
+        onnx_model = build_lens_graph(band_kernels, model.diameters, cfg, model.contract, fp16, opset, props, scales, spec.rows)
     else:
         onnx_model = build_graph(weights, cfg, model.contract, factors, fp16, opset, props)
     sess = make_session(onnx_model.SerializeToString(), threads)

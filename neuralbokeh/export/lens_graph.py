@@ -12,6 +12,10 @@ downstream either): the band's hat gate, a grouped convolution of (colour x gate
 the band's kernels (ONNX ``Conv`` correlates: the point-spread functions are stored
 point-reflected), and the near / same-surface / far bucket weights at full resolution.
 
+*Rows* (``rows`` and ``multires``; ``direct`` keeps one depthwise ``Conv``): the convolution is
+computed as row GEMMs plus a ``Col2Im`` shift-sum (:func:`_conv_rows`), the same sums in another
+order, 1.4-2.8x faster on CPU for k = 5-23.
+
 *Coarser grids* (``scales``, the default export ``multires:10``): a band whose CoC is wide is
 convolved on a grid ``s`` = 2, 4 or 8 times coarser: box-averaged features (``AveragePool``),
 the kernel binned by :func:`~neuralbokeh.networks.lens.reduce_kernel`, bilinear upsampling
@@ -32,7 +36,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import onnx
@@ -51,23 +55,32 @@ LENS_DEFAULT_KERNELS = "multires:10"
 HIDDEN_JUMP_PX = 4.0  # as neuralbokeh.ops.holes.hidden_background's default
 
 
-def parse_lens_kernels(spec: str) -> float:
-    """``"direct"`` or ``"multires:PX"`` (PX > 0: the narrowest CoC, in coarse px, a band may
-    have on a reduced grid) -> PX (0 for direct).
+class LensKernels(NamedTuple):
+    """How the band convolutions are exported (:func:`parse_lens_kernels`)."""
+
+    min_px: float  # the narrowest CoC (coarse px) a band may have on a reduced grid; 0: full resolution
+    rows: bool  # row-GEMM convolutions (:func:`_conv_rows`) instead of one depthwise ``Conv``
+
+
+def parse_lens_kernels(spec: str) -> LensKernels:
+    """``"direct"`` (full resolution, one depthwise ``Conv`` per band: the reference),
+    ``"rows"`` (full resolution, the same sums as row GEMMs, exact to float rounding) or
+    ``"multires:PX"`` (PX > 0: coarser grids for bands whose CoC stays at least PX coarse px
+    wide, as rows).
 
     Raises:
         ValueError: anything else, with the accepted forms.
     """
-    if spec == "direct":
-        return 0.0
+    if spec in ("direct", "rows"):
+        return LensKernels(0.0, spec == "rows")
     mode, _, arg = spec.partition(":")
     try:
         px = float(arg)
     except ValueError:
         px = -1.0
     if mode != "multires" or not px > 0 or not np.isfinite(px):
-        raise ValueError(f"kernels for the lens network must be 'direct' or 'multires:PX' (PX > 0 px), got {spec!r}")
-    return px
+        raise ValueError(f"kernels for the lens network must be 'direct', 'rows' or 'multires:PX' (PX > 0 px), got {spec!r}")
+    return LensKernels(px, True)
 
 
 class _Nodes:
@@ -142,11 +155,32 @@ def _linear_rgb(g: _Nodes, window: str, norm: Normalization) -> tuple[str, str]:
     return norm_rgb, rgb
 
 
+def _conv_rows(g: _Nodes, feats: str, weights: np.ndarray, size: int, fp16: bool) -> str:
+    """The depthwise correlation of ``feats`` ``(B, C, size, size)`` by ``weights`` ``(C, 1, k, k)``
+    ('same' size, zero padding), as ``Conv(group=C, pads=k // 2)`` gives it, computed by rows:
+    one grouped ``Conv`` correlates each image row with each of the ``k`` kernel rows (``k``
+    outputs per channel: a GEMM, where a depthwise ``k x k`` ``Conv`` is a matrix-vector
+    product over a ``k^2``-row im2col buffer), then ``Col2Im`` with ``(k, 1)`` blocks adds
+    kernel row ``a``'s response ``a - k // 2`` rows up. The same sums in another order: equal to
+    float rounding (``tests/test_lens_network.py``), 1.4-2.8x faster on CPU for k = 5-23."""
+    c, _, k, _ = weights.shape
+    p = k // 2
+    # output channel c k + j holds kernel row k - 1 - j: Col2Im puts block element j at row r + j - p
+    rows = np.ascontiguousarray(weights[:, 0, ::-1, None, :].reshape(c * k, 1, 1, k))
+    x = g.op("Cast", feats, to=TensorProto.FLOAT16) if fp16 else feats
+    y = g.op("Conv", x, g.c("w_rows", rows, np.float16 if fp16 else np.float32), group=c, pads=[0, p, 0, p])
+    if fp16:
+        y = g.op("Cast", y, to=TensorProto.FLOAT)
+    cols = g.op("Reshape", y, g.c("cols_shape", [0, c * k, size * size], np.int64))
+    return g.op("Col2Im", cols, g.c("rows_hw", [size, size], np.int64), g.c("rows_block", [k, 1], np.int64), pads=[p, 0, p, 0])
+
+
 def _band(b: GraphBuilder, k: int, n: int, side: int, pos: str, side_mask: str, src_mask: str, rgb: str, c: str,
-          kernel: np.ndarray, scale: int, win: int, band_coc: float, margin: float, fp16: bool) -> onnx.GraphProto:
+          kernel: np.ndarray, scale: int, win: int, band_coc: float, margin: float, fp16: bool, rows: bool) -> onnx.GraphProto:
     """Then-branch: band ``n``'s 18-channel contribution (near, same, far) x (RGB, coverage),
     its convolution on a grid ``scale`` times coarser when ``scale > 1`` (``kernel`` is then
-    the binned one, :func:`~neuralbokeh.networks.lens.reduce_kernel`)."""
+    the binned one, :func:`~neuralbokeh.networks.lens.reduce_kernel`), by rows
+    (:func:`_conv_rows`) or one depthwise ``Conv``."""
     g = _Nodes(GraphBuilder(b.count), f"t{k}.n{n}s{side}")
     one = g.c("one", 1.0)
     hat = g.op("Relu", g.op("Sub", one, g.op("Abs", g.op("Sub", pos, g.c(f"n{n}", float(n))))))
@@ -158,7 +192,9 @@ def _band(b: GraphBuilder, k: int, n: int, side: int, pos: str, side_mask: str, 
                      count_include_pad=1)
     w = np.concatenate([kernel, kernel])[:, None, ::-1, ::-1]  # (6, 1, k, k), correlation weights
     p = kernel.shape[-1] // 2
-    if fp16:
+    if rows:
+        out = _conv_rows(g, feats, w, -(-win // scale), fp16)
+    elif fp16:
         x16 = g.op("Cast", feats, to=TensorProto.FLOAT16)
         conv = g.op("Conv", x16, g.c("w", w, np.float16), group=6, pads=[p, p, p, p])
         out = g.op("Cast", conv, to=TensorProto.FLOAT)
@@ -181,7 +217,7 @@ def _band(b: GraphBuilder, k: int, n: int, side: int, pos: str, side_mask: str, 
 
 
 def _tile(b: GraphBuilder, k: int, window: str, kernels: Mapping[int, np.ndarray], scales: Mapping[int, int], src: np.ndarray,
-          cfg: ModelConfig, contract: Contract, diameters: np.ndarray, fp16: bool) -> onnx.GraphProto:
+          cfg: ModelConfig, contract: Contract, diameters: np.ndarray, fp16: bool, rows: bool) -> onnx.GraphProto:
     """Then-branch: tile ``k``'s accumulators ``(1, B, 18, win, win)`` from the outer ``window``;
     band ``n``, side ``s`` runs where ``band_active[k, n - 1, s]``. A band that does not run
     gives an empty ``(0, B, 18, win, win)``, so the sum over the bands costs only the bands
@@ -212,7 +248,7 @@ def _tile(b: GraphBuilder, k: int, window: str, kernels: Mapping[int, np.ndarray
             for side, (mask, sign) in enumerate(((behind, 1.0), (front, -1.0))):
                 used = g.op("Gather", g.op("Gather", flags, g.c(f"n{n}_row", n - 1, np.int64)), g.c(f"side{side}", side, np.int64))
                 then = _band(g.b, k, n, side, pos, mask, src_mask, rgb, c, kernels[n][side], scales.get(n, 1), win,
-                             sign * float(diameters[n]), float(cfg.occlusion_margin_px), fp16)
+                             sign * float(diameters[n]), float(cfg.occlusion_margin_px), fp16, rows)
                 skip = _Nodes(GraphBuilder(g.b.count), f"t{k}.n{n}s{side}.skip")
                 empty = skip.op("Slice", base, skip.c("s0", [0], np.int64), skip.c("s0", [0], np.int64), skip.c("ax0", [0], np.int64))
                 else_graph = _branch(skip, empty, f"t{k}_band{n}_{side}_skip")
@@ -236,7 +272,7 @@ def _passthrough(b: GraphBuilder, k: int, window: str, src: np.ndarray, norm: No
 
 def build_lens_graph(kernels: Mapping[int, np.ndarray], diameters: np.ndarray, cfg: ModelConfig, contract: Contract,
                      fp16: bool = False, opset: int = 18, metadata: Mapping[str, str] | None = None,
-                     scales: Mapping[int, int] | None = None) -> onnx.ModelProto:
+                     scales: Mapping[int, int] | None = None, rows: bool = False) -> onnx.ModelProto:
     """The full-image ONNX model of a ``LensBokeh``.
 
     Args:
@@ -248,6 +284,8 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], diameters: np.ndarray, c
             and CoC scale).
         fp16: float16 convolutions. opset: >= 18 (``Col2Im``). metadata: ``metadata_props``.
         scales: ``{n: s}`` band n convolved on a grid s times coarser (default: all 1, direct).
+        rows: the band convolutions as row GEMMs (:func:`_conv_rows`; exact to float
+            rounding, faster) instead of depthwise ``Conv`` nodes.
     """
     if opset < 18:
         raise ValueError(f"the lens graph needs opset >= 18 (Col2Im), got {opset}")
@@ -268,7 +306,7 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], diameters: np.ndarray, c
                         b.const(f"t{k}.ends", [r + win, c + win], np.int64), b.const("axes_hw", [2, 3], np.int64))
         cond = top.op("Gather", "tile_active", b.const(f"t{k}.index", k, np.int64))
         tile_kernels = {n: kernels[n][k] for n in kernels}
-        then = _tile(b, k, window, tile_kernels, scales, source_masks[k], cfg, contract, diameters, fp16)
+        then = _tile(b, k, window, tile_kernels, scales, source_masks[k], cfg, contract, diameters, fp16, rows)
         b.count += 10_000  # branch-local names stay unique across branches
         other = _passthrough(b, k, window, source_masks[k], contract.normalization)
         b.count += 10_000
