@@ -162,7 +162,7 @@ def _conv_rows(g: _Nodes, feats: str, weights: np.ndarray, size: int, fp16: bool
     outputs per channel: a GEMM, where a depthwise ``k x k`` ``Conv`` is a matrix-vector
     product over a ``k^2``-row im2col buffer), then ``Col2Im`` with ``(k, 1)`` blocks adds
     kernel row ``a``'s response ``a - k // 2`` rows up. The same sums in another order: equal to
-    float rounding (``tests/test_lens_network.py``), 1.4-2.8x faster on CPU for k = 5-23."""
+    float rounding (``tests/test_export.py``), 1.4-2.8x faster on CPU for k = 5-23."""
     c, _, k, _ = weights.shape
     p = k // 2
     # output channel c k + j holds kernel row k - 1 - j: Col2Im puts block element j at row r + j - p
