@@ -9,12 +9,15 @@ import numpy as np
 import onnx
 import pytest
 import torch
+from onnx import TensorProto, helper
 
 from neuralbokeh.export.exporter import calibration_inputs, export_checkpoint, probe_inputs, run_session
-from neuralbokeh.export.lens_graph import LENS_DEFAULT_KERNELS
+from neuralbokeh.export.graph import GraphBuilder
+from neuralbokeh.export.lens_graph import LENS_DEFAULT_KERNELS, _conv_rows, _Nodes
 from neuralbokeh.export.lowrank import cheaper_ranks, factorize, parse_kernels, reconstruct, relative_error
 from neuralbokeh.checkpoint import load_model
 from neuralbokeh.checkpoint import load_checkpoint
+from neuralbokeh.runtime.onnx_model import make_session
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -53,9 +56,7 @@ def test_cheaper_ranks_and_kernel_spec_parsing():
 
 
 def _run_onnx(path, aif, coc, active=None):
-    from neuralbokeh.runtime.onnx_model import make_session as session
-
-    return run_session(session(str(path), threads=1), aif, coc, active)
+    return run_session(make_session(str(path), threads=1), aif, coc, active)
 
 
 def test_export_direct_matches_pytorch_and_carries_metadata(busy_checkpoint, tmp_path):
@@ -171,11 +172,6 @@ def test_multires_export_matches_its_pytorch_reference(busy_checkpoint, tmp_path
 def test_row_convolution_is_the_depthwise_convolution(k, size, channels):
     """``_conv_rows`` (row GEMMs + Col2Im) against torch's depthwise conv2d, 'same' size and
     zero padding, kernels wider than the image included: equal to float32 rounding."""
-    from onnx import TensorProto, helper
-
-    from neuralbokeh.export.graph import GraphBuilder
-    from neuralbokeh.export.lens_graph import _conv_rows, _Nodes
-
     gen = torch.Generator().manual_seed(k)
     x = torch.rand(2, channels, size, size, generator=gen)
     w = torch.rand(channels, 1, k, k, generator=gen) - 0.3  # asymmetric, signed: a flipped row would show
@@ -184,8 +180,6 @@ def test_row_convolution_is_the_depthwise_convolution(k, size, channels):
     g.nodes.append(helper.make_node("Identity", [out], ["y"]))
     graph = helper.make_graph(g.nodes, "rows", [helper.make_tensor_value_info("x", TensorProto.FLOAT, [2, channels, size, size])],
                               [helper.make_tensor_value_info("y", TensorProto.FLOAT, None)], g.b.initializers)
-    from neuralbokeh.runtime.onnx_model import make_session
-
     sess = make_session(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)]).SerializeToString(), threads=1)
     got = sess.run(None, {"x": x.numpy()})[0]
     want = torch.nn.functional.conv2d(x, w, padding=k // 2, groups=channels).numpy()
