@@ -13,9 +13,12 @@ from onnx import TensorProto, helper
 
 from neuralbokeh.export.exporter import calibration_inputs, export_checkpoint, probe_inputs, run_session
 from neuralbokeh.export.graph import GraphBuilder
-from neuralbokeh.export.lens_graph import LENS_DEFAULT_KERNELS, _conv_rows, _Nodes
+from neuralbokeh.core.contract import Contract
+from neuralbokeh.core.normalization import Normalization
+from neuralbokeh.export.lens_graph import HIDDEN_JUMP_PX, LENS_DEFAULT_KERNELS, _conv_rows, _hidden_background, _Nodes
 from neuralbokeh.export.lowrank import cheaper_ranks, factorize, parse_kernels, reconstruct, relative_error
 from neuralbokeh.checkpoint import load_model
+from neuralbokeh.ops.holes import hidden_background
 from neuralbokeh.checkpoint import load_checkpoint
 from neuralbokeh.runtime.onnx_model import make_session
 
@@ -166,6 +169,31 @@ def test_multires_export_matches_its_pytorch_reference(busy_checkpoint, tmp_path
         want, exact = model(x, scales=scales).numpy(), model(x).numpy()
     assert np.abs(got - want).max() < 1e-4
     assert np.abs(got - exact).max() > 1e-4
+
+
+@pytest.mark.parametrize("h, w, c_max", [(13, 22, 9.0), (24, 40, 14.0), (17, 9, 6.0), (33, 64, 20.0)])
+def test_graph_fill_is_the_hidden_background(h, w, c_max):
+    """The lens graph's hidden-background estimate (level 0 unpadded, its upsampling cropped)
+    against ``ops.holes.hidden_background`` (zero-padded square pyramid), odd sizes included."""
+    gen = torch.Generator().manual_seed(h * w)
+    norm = Normalization()
+    rgb = torch.rand(2, 3, h, w, generator=gen, dtype=torch.float64) * 4.0
+    coc = torch.rand(2, 1, h, w, generator=gen, dtype=torch.float64) * 2.0 - 1.0  # a background at ~0 px
+    coc[..., h // 3 : 2 * h // 3, w // 4 :] = -c_max  # a blurred foreground block, an occluder at its edges
+    coc[1, :, : h // 4] = c_max * 0.8  # and a far band in image 1
+    contract = Contract(h, w, norm, c_max, c_max)
+    g = _Nodes(GraphBuilder(), "g")
+    out = _hidden_background(g, "x", contract)
+    graph = helper.make_graph(g.nodes, "fill", [helper.make_tensor_value_info("x", TensorProto.FLOAT, [2, 4, h, w])],
+                              [helper.make_tensor_value_info(out, TensorProto.FLOAT, None)], g.b.initializers)
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)])
+    model.ir_version = 9
+    x = torch.cat([norm.encode(rgb), coc / c_max], 1).float().numpy()
+    got = make_session(model.SerializeToString(), threads=1).run(None, {"x": x})[0]
+    want = hidden_background(norm.decode(torch.from_numpy(x[:, :3]).double()), torch.from_numpy(x[:, 3:]).double() * c_max,
+                             HIDDEN_JUMP_PX, radius_px=int(np.ceil(c_max / 2)))
+    assert float((want - rgb).abs().max()) > 0.1  # the occluders were filled
+    np.testing.assert_allclose(got, want.numpy(), rtol=1e-5, atol=1e-5 * float(rgb.max()))
 
 
 @pytest.mark.parametrize("k, size, channels", [(3, 5, 6), (7, 12, 6), (15, 9, 2), (21, 16, 3)])

@@ -108,6 +108,11 @@ def test_in_focus_tiles_are_skipped_and_defocused_ones_unchanged(which, request)
         assert np.abs(full[:, : t - t_o] - aif[:, : t - t_o]).max() > 1e-3  # the busy network would have changed it
     else:  # the lens network leaves CoC <= 1 px untouched: skipping is exact everywhere
         np.testing.assert_allclose(skip, full, rtol=2e-6, atol=1e-7)
+        # a lens tile scatters its core only: column 0's window reaches the blur, its core does not
+        reach = np.where(np.arange(m_skip.width) > t, 0.8 * m_skip.contract.max_coc_px, 0.9)[None].repeat(m_skip.height, 0)
+        full, skip = m_full.render_coc(aif, reach), m_skip.render_coc(aif, reach)
+        assert m_skip.last_tiles_run == 4 and m_skip.active_tiles(reach[None]).all()
+        np.testing.assert_allclose(skip, full, rtol=2e-6, atol=1e-7)
     everything_sharp = m_skip.render_coc(aif, np.zeros_like(coc))
     assert m_skip.last_tiles_run == 0
     np.testing.assert_allclose(everything_sharp, aif, rtol=2e-6)

@@ -112,7 +112,8 @@ def _hidden_background(top: _Nodes, x: str, contract: Contract) -> str:
     """``(B, 3, H, W)`` linear estimate of what foregrounds hide, as ``LensBokeh.hidden``:
     occluders by a separable max over ``2R + 1`` px (``R`` = half the largest CoC), then the
     pull-push fill of :func:`neuralbokeh.ops.holes.push_pull_fill` on the zero-padded
-    ``2^L`` square (``AveragePool`` 2x2, ``Resize`` x2 half-pixel)."""
+    ``2^L`` square (``AveragePool`` 2x2, ``Resize`` x2 half-pixel), whose level 0 is never
+    padded nor upsampled beyond the image (the same values, ~2x less work at 1080p)."""
     h, w = contract.size
     _, rgb = _linear_rgb(top, x, contract.normalization)
     coc = top.op("Mul", top.op("Slice", x, top.c("bg.s3", [3], np.int64), top.c("bg.s4", [4], np.int64), top.c("bg.ax1", [1], np.int64)),
@@ -120,15 +121,26 @@ def _hidden_background(top: _Nodes, x: str, contract: Contract) -> str:
     r = int(math.ceil(float(contract.coc_scale_px) / 2.0))
     if r == 0:
         return rgb  # nothing can hide anything: the fill is the AIF itself
+    # both passes as row maxima (onnxruntime's (1, k) MaxPool is ~2x faster than its (k, 1) one):
+    # rows, transpose, rows, transpose back
     far = top.op("MaxPool", coc, kernel_shape=[1, 2 * r + 1], pads=[0, r, 0, r], strides=[1, 1])
-    far = top.op("MaxPool", far, kernel_shape=[2 * r + 1, 1], pads=[r, 0, r, 0], strides=[1, 1])
+    far = top.op("MaxPool", top.op("Transpose", far, perm=[0, 1, 3, 2]), kernel_shape=[1, 2 * r + 1], pads=[0, r, 0, r],
+                 strides=[1, 1])
+    far = top.op("Transpose", far, perm=[0, 1, 3, 2])
     hide = top.op("Less", coc, top.op("Sub", far, top.c("bg.jump", HIDDEN_JUMP_PX)))
     keep = top.op("Cast", top.op("Not", hide), to=TensorProto.FLOAT)
+    # the pyramid of push_pull_fill on the zero-padded 2^L square, with level 0 left unpadded:
+    # its 2x2 means over the padding are 0 with weight 0, as padding level 1 with zeros gives
     side = 1 << pyramid_levels(h, w)
-    pads = top.c("bg.pads", [0, 0, 0, 0, 0, 0, side - h, side - w], np.int64)
-    image, weight = top.op("Pad", rgb, pads), top.op("Pad", keep, pads)  # zeros, weight 0 outside
+    pooled = [0, 0, h % 2, w % 2]
+    weight = top.op("AveragePool", keep, kernel_shape=[2, 2], strides=[2, 2], pads=pooled, count_include_pad=1)
+    image = top.op("Div", top.op("AveragePool", top.op("Mul", rgb, keep), kernel_shape=[2, 2], strides=[2, 2], pads=pooled,
+                                 count_include_pad=1), top.op("Max", weight, top.c("bg.tiny", 1e-12)))
+    pads = top.c("bg.pads", [0, 0, 0, 0, 0, 0, side // 2 - (h + 1) // 2, side // 2 - (w + 1) // 2], np.int64)
+    image, weight = top.op("Pad", image, pads), top.op("Pad", top.op("Min", top.op("Mul", weight, top.c("bg.four", 4.0)),
+                                                                      top.c("bg.one", 1.0)), pads)
     levels = []
-    size = side
+    size = side // 2
     while size >= 2:  # pull: weight-normalised 2x2 means
         levels.append((image, weight))
         w_small = top.op("AveragePool", weight, kernel_shape=[2, 2], strides=[2, 2])
@@ -138,11 +150,18 @@ def _hidden_background(top: _Nodes, x: str, contract: Contract) -> str:
         size //= 2
     filled = image
     for image, weight in reversed(levels):  # push: fill each level from the next coarser one
-        up = top.op("Resize", filled, "", top.c("bg.x2", [1.0, 1.0, 2.0, 2.0]), mode="linear",
-                    coordinate_transformation_mode="half_pixel")
-        filled = top.op("Add", top.op("Mul", weight, image), top.op("Mul", top.op("Sub", top.c("bg.one", 1.0), weight), up))
-    return top.op("Slice", filled, top.c("bg.start", [0, 0], np.int64), top.c("bg.end", [h, w], np.int64),
-                  top.c("bg.axes", [2, 3], np.int64))
+        filled = top.op("Add", top.op("Mul", weight, image), top.op("Mul", top.op("Sub", top.c("bg.one", 1.0), weight),
+                                                                      _upsample2(top, filled)))
+    # level 0 needs rows < h of the x2 upsampling: those read level 1's rows <= h // 2 only
+    need = top.c("bg.need", [min(h // 2 + 1, side // 2), min(w // 2 + 1, side // 2)], np.int64)
+    up = _upsample2(top, top.op("Slice", filled, top.c("bg.start", [0, 0], np.int64), need, top.c("bg.axes", [2, 3], np.int64)))
+    up = top.op("Slice", up, top.c("bg.start", [0, 0], np.int64), top.c("bg.end", [h, w], np.int64), top.c("bg.axes", [2, 3], np.int64))
+    return top.op("Add", top.op("Mul", keep, rgb), top.op("Mul", top.op("Sub", top.c("bg.one", 1.0), keep), up))
+
+
+def _upsample2(g: _Nodes, x: str) -> str:
+    """x2 bilinear upsampling, half-pixel (``F.interpolate(scale_factor=2, align_corners=False)``)."""
+    return g.op("Resize", x, "", g.c("bg.x2", [1.0, 1.0, 2.0, 2.0]), mode="linear", coordinate_transformation_mode="half_pixel")
 
 
 def _linear_rgb(g: _Nodes, window: str, norm: Normalization) -> tuple[str, str]:
@@ -177,7 +196,7 @@ def _conv_rows(g: _Nodes, feats: str, weights: np.ndarray, size: int, fp16: bool
 
 def _band(b: GraphBuilder, k: int, n: int, side: int, pos: str, side_mask: str, src_mask: str, rgb: str, c: str,
           kernel: np.ndarray, scale: int, win: int, band_coc: float, margin: float, fp16: bool, rows: bool) -> onnx.GraphProto:
-    """Then-branch: band ``n``'s 18-channel contribution (near, same, far) x (RGB, coverage),
+    """Then-branch: band ``n``'s contribution ``(1, B, 3, 6, win, win)``, (near, same, far) x (RGB, coverage),
     its convolution on a grid ``scale`` times coarser when ``scale > 1`` (``kernel`` is then
     the binned one, :func:`~neuralbokeh.networks.lens.reduce_kernel`), by rows
     (:func:`_conv_rows`) or one depthwise ``Conv``."""
@@ -210,17 +229,17 @@ def _band(b: GraphBuilder, k: int, n: int, side: int, pos: str, side_mask: str, 
     near = g.op("Clip", g.op("Mul", g.op("Sub", g.op("Neg", delta), g.c("margin", margin)), inv), zero, one)
     far = g.op("Clip", g.op("Mul", g.op("Sub", delta, g.c("margin", margin)), inv), zero, one)
     same = g.op("Sub", g.op("Sub", one, near), far)
-    # one broadcast product (B, 3, 1) x (B, 1, 6) -> (1, B, 18): the 18 channels are written once
-    weights = g.op("Unsqueeze", g.op("Concat", near, same, far, axis=1), g.c("ax2", [2], np.int64))
-    parts = g.op("Mul", weights, g.op("Unsqueeze", out, g.c("ax1u", [1], np.int64)))
-    return _branch(g, g.op("Reshape", parts, g.c("shape18", [1, -1, 18, win, win], np.int64)), f"t{k}_band{n}_{side}")
+    # one broadcast product (1, B, 3, 1) x (1, B, 1, 6) -> (1, B, 3, 6): written once, and as the
+    # branch's output (a Reshape there would be a copy)
+    weights = g.op("Unsqueeze", g.op("Concat", near, same, far, axis=1), g.c("ax03", [0, 3], np.int64))
+    return _branch(g, g.op("Mul", weights, g.op("Unsqueeze", out, g.c("ax02", [0, 2], np.int64))), f"t{k}_band{n}_{side}")
 
 
 def _tile(b: GraphBuilder, k: int, window: str, kernels: Mapping[int, np.ndarray], scales: Mapping[int, int], src: np.ndarray,
           cfg: ModelConfig, contract: Contract, diameters: np.ndarray, fp16: bool, rows: bool) -> onnx.GraphProto:
-    """Then-branch: tile ``k``'s accumulators ``(1, B, 18, win, win)`` from the outer ``window``;
+    """Then-branch: tile ``k``'s accumulators ``(1, B, 3, 6, win, win)`` from the outer ``window``;
     band ``n``, side ``s`` runs where ``band_active[k, n - 1, s]``. A band that does not run
-    gives an empty ``(0, B, 18, win, win)``, so the sum over the bands costs only the bands
+    gives an empty ``(0, B, 3, 6, win, win)``, so the sum over the bands costs only the bands
     that ran."""
     g = _Nodes(GraphBuilder(b.count), f"t{k}")
     c_max, blocks = float(contract.coc_scale_px), int(cfg.blocks)
@@ -238,7 +257,8 @@ def _tile(b: GraphBuilder, k: int, window: str, kernels: Mapping[int, np.ndarray
         pos = g.op("Min", g.op("Mul", shifted, g.c("inv_step", 1.0 / step)), g.c("n_max", float(blocks)))
         g0 = g.op("Mul", g.op("Relu", g.op("Sub", one, pos)), src_mask)
     zeros6 = g.op("Mul", g.op("Concat", rgb, rgb, axis=1), g.c("zero", 0.0))
-    base = g.op("Unsqueeze", g.op("Concat", zeros6, g.op("Mul", rgb, g0), g0, g0, g0, zeros6, axis=1), g.c("ax0", [0], np.int64))
+    base = g.op("Reshape", g.op("Concat", zeros6, g.op("Mul", rgb, g0), g0, g0, g0, zeros6, axis=1),
+                g.c("acc_shape", [1, -1, 3, 6, win, win], np.int64))
     parts = [base]
     if pos is not None:
         behind = g.op("Cast", g.op("Greater", c, g.c("zero", 0.0)), to=TensorProto.FLOAT)
@@ -267,7 +287,8 @@ def _passthrough(b: GraphBuilder, k: int, window: str, src: np.ndarray, norm: No
     ones = g.op("Add", g.op("Mul", norm_rgb, g.c("zero", 0.0)), m)  # (B, 3, win, win) of the mask
     zeros6 = g.op("Mul", g.op("Concat", rgb, rgb, axis=1), g.c("zero", 0.0))
     parts = g.op("Concat", zeros6, g.op("Mul", rgb, m), ones, zeros6, axis=1)
-    return _branch(g, g.op("Unsqueeze", parts, g.c("ax0", [0], np.int64)), f"t{k}_pass")
+    win = src.shape[-1]
+    return _branch(g, g.op("Reshape", parts, g.c("acc_shape", [1, -1, 3, 6, win, win], np.int64)), f"t{k}_pass")
 
 
 def build_lens_graph(kernels: Mapping[int, np.ndarray], diameters: np.ndarray, cfg: ModelConfig, contract: Contract,
@@ -310,10 +331,10 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], diameters: np.ndarray, c
         b.count += 10_000  # branch-local names stay unique across branches
         other = _passthrough(b, k, window, source_masks[k], contract.normalization)
         b.count += 10_000
-        placed.append(top.op("If", cond, then_branch=then, else_branch=other))  # (1, B, 18, win, win)
-    # overlap-add of the windows in one pass: (T, B, 18, win, win) -> (B, 18 win^2, T) -> Col2Im
+        placed.append(top.op("If", cond, then_branch=then, else_branch=other))  # (1, B, 3, 6, win, win)
+    # overlap-add of the windows in one pass: (T, B, 3, 6, win, win) -> (B, 18 win^2, T) -> Col2Im
     stacked = top.op("Concat", *placed, axis=0) if len(placed) > 1 else placed[0]
-    cols_ = top.op("Reshape", top.op("Transpose", stacked, perm=[1, 2, 3, 4, 0]), b.const("cols_shape", [0, 18 * win * win, n_t], np.int64))
+    cols_ = top.op("Reshape", top.op("Transpose", stacked, perm=[1, 2, 3, 4, 5, 0]), b.const("cols_shape", [0, 18 * win * win, n_t], np.int64))
     total = top.op("Col2Im", cols_, b.const("canvas_hw", [hp, wp], np.int64), b.const("block_hw", [win, win], np.int64),
                    strides=[t, t])
     canvas = top.op("Slice", total, b.const("crop_start", [t_o, t_o], np.int64), b.const("crop_end", [t_o + h, t_o + w], np.int64),

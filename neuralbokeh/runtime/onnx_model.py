@@ -16,8 +16,10 @@ independently, so the window is the tile's entire receptive field) returns its i
 without running the network. In a lens model (``model.architecture = "lens"``), the CoC
 bands and sides of the focus plane that no pixel of a tile scatters are not computed either
 (``band_active``, proved from the frame's CoC map: a frame whose largest CoC is a third of
-the model's runs only a third of the bands). Both are exact: tiles and bands that run give
-what the full evaluation gives.
+the model's runs only a third of the bands), and a tile whose core scatters no band (every
+|CoC| there <= 1 px: points) is passed through whatever its window holds, since a lens tile
+scatters its own core only. All three are exact: tiles and bands that run give what the full
+evaluation gives.
 """
 
 from __future__ import annotations
@@ -130,14 +132,14 @@ class OnnxBokeh:
         Returns:
             float32 linear RGB in the layout of ``aif``.
         """
-        aif4, batched = self._images(aif)
-        depth = self._per_pixel("depth_m", depth_m, aif4, batched)
-        return self._run(aif4, self.coc_px(depth, focus_m), clamp_coc, batched)
+        chw, batched = self._images(aif)
+        depth = self._per_pixel("depth_m", depth_m, chw, batched)
+        return self._run(chw, self.coc_px(depth, focus_m), clamp_coc, batched)
 
     def render_coc(self, aif: np.ndarray, coc_px: np.ndarray, clamp_coc: bool = False) -> np.ndarray:
         """Like :meth:`render` with a signed CoC map in px (``(H, W)``, ``(H, W, 1)`` or batched)."""
-        aif4, batched = self._images(aif)
-        return self._run(aif4, self._per_pixel("coc_px", coc_px, aif4, batched), clamp_coc, batched)
+        chw, batched = self._images(aif)
+        return self._run(chw, self._per_pixel("coc_px", coc_px, chw, batched), clamp_coc, batched)
 
     def active_tiles(self, coc_px: np.ndarray) -> np.ndarray:
         """``(tiles,)`` bool: tiles whose window holds a |CoC| >= ``in_focus_px`` in any image of
@@ -164,7 +166,10 @@ class OnnxBokeh:
         # networks.lens.band_position in numpy (the runtime never imports torch)
         pos = np.clip((np.abs(c) - 1.0) / step, 0.0, blocks)
         width = blocks + 2
-        side = np.where(c > 0, 0, np.where(c < 0, width, 2 * width)).astype(np.int32)  # 2 width: in focus, scatters nothing
+        # 2 width: scatters nothing beyond band 0 (|c| <= 1 px gives position 0, where every band's
+        # hat is 0; 1e-4 px of margin for the model's float32 CoC)
+        point = np.abs(c) < 1.0 - 1e-4
+        side = np.where(point, 2 * width, np.where(c > 0, 0, width)).astype(np.int32)
         # bands lo and lo + 1 around each pixel's band position, and one more where it sits within
         # 1e-3 of a band centre (float32 rounding in the model): a superset of the non-zero hats
         lo = side + np.floor(np.maximum(pos - 1e-3, 0.0)).astype(np.int32)
@@ -183,25 +188,30 @@ class OnnxBokeh:
         if a4.ndim != 4 or a4.shape[1:] != (self.height, self.width, 3):
             raise ValueError(f"aif must have shape ({self.height}, {self.width}, 3) or (B, {self.height}, {self.width}, 3) "
                              f"for this model, got {a.shape}")
-        chw = a4.transpose(0, 3, 1, 2)  # so that errors name the pixel as (row, col)
+        # (B, 3, H, W) float32, the graph's layout, copied once (numpy is ~5x slower on the
+        # transposed view); errors name the pixel as (row, col)
+        chw = np.ascontiguousarray(a4.transpose(0, 3, 1, 2), dtype=np.float32)
         check_finite("aif colour", chw)
         check_at_least("aif colour", chw, -self.contract.normalization.offset)
-        return a4, batched
+        return chw, batched
 
     @staticmethod
-    def _per_pixel(name: str, values: np.ndarray, aif4: np.ndarray, batched: bool) -> np.ndarray:
-        """A one-channel map ``(H, W)``, ``(H, W, 1)`` (or with the batch axis) -> ``(B, H, W)`` float64."""
+    def _per_pixel(name: str, values: np.ndarray, chw: np.ndarray, batched: bool) -> np.ndarray:
+        """A one-channel map ``(H, W)``, ``(H, W, 1)`` (or with the batch axis) -> ``(B, H, W)``
+        float64, for the images ``chw`` ``(B, 3, H, W)``."""
         a = np.asarray(values, dtype=np.float64)
         if a.ndim == 3 + batched and a.shape[-1] == 1:
             a = a[..., 0]
+        shape = chw.shape[:1] + chw.shape[2:]
         if a.ndim == 2:
-            a = np.broadcast_to(a, aif4.shape[:1] + a.shape)
-        if a.shape != aif4.shape[:3]:
-            want = f"{aif4.shape[:3]} or {aif4.shape[:3] + (1,)}" if batched else f"{aif4.shape[1:3]} or {aif4.shape[1:3] + (1,)}"
+            a = np.broadcast_to(a, shape[:1] + a.shape)
+        if a.shape != shape:
+            want = f"{shape} or {shape + (1,)}" if batched else f"{shape[1:]} or {shape[1:] + (1,)}"
             raise ValueError(f"{name} must have shape {want}, got {np.shape(values)}")
         return a
 
     def _run(self, aif: np.ndarray, coc_px: np.ndarray, clamp_coc: bool, batched: bool) -> np.ndarray:
+        """``aif`` ``(B, 3, H, W)`` float32 linear RGB (checked), ``coc_px`` ``(B, H, W)``."""
         check_finite("CoC", coc_px, " px")
         over = np.abs(coc_px) > self.contract.max_coc_px
         if over.any():
@@ -215,7 +225,7 @@ class OnnxBokeh:
             coc_px = np.clip(coc_px, -self.contract.max_coc_px, self.contract.max_coc_px)
         active = self.active_tiles(coc_px)
         self.last_tiles_run = int(active.sum())
-        colour, coc = self.contract.encode_inputs(aif.astype(np.float32, copy=False).transpose(0, 3, 1, 2), coc_px[:, None])
+        colour, coc = self.contract.encode_inputs(aif, coc_px[:, None])
         feeds = {
             # float32 throughout: the graph takes float32, and 1 - n is exact in float32 near n = 1
             "aif": np.ascontiguousarray(colour),
@@ -224,7 +234,10 @@ class OnnxBokeh:
         }
         if self.has_bands:
             bands = self.active_bands(coc_px) & active[:, None, None]
-            feeds["band_active"] = bands
+            # a lens tile scatters its core only: with no band to run it is its pass-through (exact)
+            active = active & bands.any(axis=(1, 2))
+            self.last_tiles_run = int(active.sum())
+            feeds["tile_active"], feeds["band_active"] = active, bands
             self.last_bands_run = int(bands.sum())
         out = self.session.run(["defocus"], feeds)[0]
         if not (out < 1.0).all():
