@@ -171,7 +171,7 @@ def test_multires_export_matches_its_pytorch_reference(busy_checkpoint, tmp_path
     assert np.abs(got - exact).max() > 1e-4
 
 
-@pytest.mark.parametrize("h, w, c_max", [(13, 22, 9.0), (24, 40, 14.0), (17, 9, 6.0), (33, 64, 20.0)])
+@pytest.mark.parametrize("h, w, c_max", [(13, 22, 9.0), (24, 40, 14.0), (17, 9, 6.0), (33, 64, 20.0), (1, 1, 4.0)])
 def test_graph_fill_is_the_hidden_background(h, w, c_max):
     """The lens graph's hidden-background estimate (level 0 unpadded, its upsampling cropped)
     against ``ops.holes.hidden_background`` (zero-padded square pyramid), odd sizes included."""
@@ -192,7 +192,7 @@ def test_graph_fill_is_the_hidden_background(h, w, c_max):
     got = make_session(model.SerializeToString(), threads=1).run(None, {"x": x})[0]
     want = hidden_background(norm.decode(torch.from_numpy(x[:, :3]).double()), torch.from_numpy(x[:, 3:]).double() * c_max,
                              HIDDEN_JUMP_PX, radius_px=int(np.ceil(c_max / 2)))
-    assert float((want - rgb).abs().max()) > 0.1  # the occluders were filled
+    assert h * w == 1 or float((want - rgb).abs().max()) > 0.1  # the occluders were filled
     np.testing.assert_allclose(got, want.numpy(), rtol=1e-5, atol=1e-5 * float(rgb.max()))
 
 

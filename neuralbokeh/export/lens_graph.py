@@ -132,21 +132,16 @@ def _hidden_background(top: _Nodes, x: str, contract: Contract) -> str:
     # the pyramid of push_pull_fill on the zero-padded 2^L square, with level 0 left unpadded:
     # its 2x2 means over the padding are 0 with weight 0, as padding level 1 with zeros gives
     side = 1 << pyramid_levels(h, w)
-    pooled = [0, 0, h % 2, w % 2]
-    weight = top.op("AveragePool", keep, kernel_shape=[2, 2], strides=[2, 2], pads=pooled, count_include_pad=1)
-    image = top.op("Div", top.op("AveragePool", top.op("Mul", rgb, keep), kernel_shape=[2, 2], strides=[2, 2], pads=pooled,
-                                 count_include_pad=1), top.op("Max", weight, top.c("bg.tiny", 1e-12)))
+    if side < 2:
+        return rgb  # one pixel: nothing stands in front of anything
+    image, weight = _pull(top, rgb, keep, [0, 0, h % 2, w % 2])
     pads = top.c("bg.pads", [0, 0, 0, 0, 0, 0, side // 2 - (h + 1) // 2, side // 2 - (w + 1) // 2], np.int64)
-    image, weight = top.op("Pad", image, pads), top.op("Pad", top.op("Min", top.op("Mul", weight, top.c("bg.four", 4.0)),
-                                                                      top.c("bg.one", 1.0)), pads)
+    image, weight = top.op("Pad", image, pads), top.op("Pad", weight, pads)
     levels = []
     size = side // 2
     while size >= 2:  # pull: weight-normalised 2x2 means
         levels.append((image, weight))
-        w_small = top.op("AveragePool", weight, kernel_shape=[2, 2], strides=[2, 2])
-        c_small = top.op("Div", top.op("AveragePool", top.op("Mul", image, weight), kernel_shape=[2, 2], strides=[2, 2]),
-                         top.op("Max", w_small, top.c("bg.tiny", 1e-12)))
-        image, weight = c_small, top.op("Min", top.op("Mul", w_small, top.c("bg.four", 4.0)), top.c("bg.one", 1.0))
+        image, weight = _pull(top, image, weight, [0, 0, 0, 0])
         size //= 2
     filled = image
     for image, weight in reversed(levels):  # push: fill each level from the next coarser one
@@ -157,6 +152,15 @@ def _hidden_background(top: _Nodes, x: str, contract: Contract) -> str:
     up = _upsample2(top, top.op("Slice", filled, top.c("bg.start", [0, 0], np.int64), need, top.c("bg.axes", [2, 3], np.int64)))
     up = top.op("Slice", up, top.c("bg.start", [0, 0], np.int64), top.c("bg.end", [h, w], np.int64), top.c("bg.axes", [2, 3], np.int64))
     return top.op("Add", top.op("Mul", keep, rgb), top.op("Mul", top.op("Sub", top.c("bg.one", 1.0), keep), up))
+
+
+def _pull(g: _Nodes, image: str, weight: str, pads: list[int]) -> tuple[str, str]:
+    """One pull step of :func:`neuralbokeh.ops.holes.push_pull_fill`: weight-normalised 2x2
+    means and their weight (4 x the mean weight, at most 1); ``pads`` (end side) zero-pads."""
+    w_small = g.op("AveragePool", weight, kernel_shape=[2, 2], strides=[2, 2], pads=pads, count_include_pad=1)
+    c_small = g.op("Div", g.op("AveragePool", g.op("Mul", image, weight), kernel_shape=[2, 2], strides=[2, 2], pads=pads,
+                               count_include_pad=1), g.op("Max", w_small, g.c("bg.tiny", 1e-12)))
+    return c_small, g.op("Min", g.op("Mul", w_small, g.c("bg.four", 4.0)), g.c("bg.one", 1.0))
 
 
 def _upsample2(g: _Nodes, x: str) -> str:
