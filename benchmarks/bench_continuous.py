@@ -1,8 +1,8 @@
 """Continuous depth: the classical renderers against Mitsuba on non-planar scenes.
 
     python benchmarks/bench_continuous.py [--size 256 192] [--spp 8192]   (~12 min on 2 cores;
-                                         --truth-renders 4 --cases fg: ~13 min, the figure
-                                         the README quotes)
+                                         --truth-renders 4 --cases fg: 713 s of
+                                         Mitsuba truths, the figure the README quotes)
 
 The scene is :func:`data_tools.mitsuba.scenes.occlusion_scene`: continuous depth everywhere (a
 textured sphere, a tilted board and a box in the foreground at 0.8-1.1 m, standing on a floor
