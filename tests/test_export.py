@@ -15,7 +15,8 @@ from neuralbokeh.export.exporter import calibration_inputs, export_checkpoint, p
 from neuralbokeh.export.graph import GraphBuilder
 from neuralbokeh.core.contract import Contract
 from neuralbokeh.core.normalization import Normalization
-from neuralbokeh.export.lens_graph import HIDDEN_JUMP_PX, LENS_DEFAULT_KERNELS, _conv_rows, _hidden_background, _Nodes
+from neuralbokeh.export.lens_graph import (HIDDEN_JUMP_PX, LENS_DEFAULT_KERNELS, _conv_rows, _hidden_background, _Nodes,
+                                          _window_max)
 from neuralbokeh.export.lowrank import cheaper_ranks, factorize, parse_kernels, reconstruct, relative_error
 from neuralbokeh.checkpoint import load_model
 from neuralbokeh.ops.holes import hidden_background
@@ -194,6 +195,25 @@ def test_graph_fill_is_the_hidden_background(h, w, c_max):
                              HIDDEN_JUMP_PX, radius_px=int(np.ceil(c_max / 2)))
     assert h * w == 1 or float((want - rgb).abs().max()) > 0.1  # the occluders were filled
     np.testing.assert_allclose(got, want.numpy(), rtol=1e-5, atol=1e-5 * float(rgb.max()))
+
+
+@pytest.mark.parametrize("r, h, w", [(1, 6, 5), (3, 4, 9), (5, 17, 12), (21, 7, 50), (8, 3, 3)])
+def test_window_max_is_the_sliding_maximum(r, h, w):
+    """The doubling Slice-Max of the fill's occluder search against a literal sliding maximum
+    (windows clipped at the edges), along rows and columns, windows wider than the image included."""
+    x = np.random.default_rng(r * h * w).normal(size=(2, 1, h, w)).astype(np.float32)
+    g = _Nodes(GraphBuilder(), "g")
+    rows = _window_max(g, "x", r, 3, w)
+    both = _window_max(g, rows, r, 2, h)
+    graph = helper.make_graph(g.nodes, "max", [helper.make_tensor_value_info("x", TensorProto.FLOAT, [2, 1, h, w])],
+                              [helper.make_tensor_value_info(o, TensorProto.FLOAT, None) for o in (rows, both)], g.b.initializers)
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)])
+    model.ir_version = 9
+    got_rows, got_both = make_session(model.SerializeToString(), threads=1).run(None, {"x": x})
+    want_rows = np.stack([x[..., max(j - r, 0) : j + r + 1].max(-1) for j in range(w)], -1)
+    want_both = np.stack([want_rows[..., max(i - r, 0) : i + r + 1, :].max(-2) for i in range(h)], -2)
+    np.testing.assert_array_equal(got_rows, want_rows)
+    np.testing.assert_array_equal(got_both, want_both)
 
 
 @pytest.mark.parametrize("k, size, channels", [(3, 5, 6), (7, 12, 6), (15, 9, 2), (21, 16, 3)])

@@ -121,12 +121,7 @@ def _hidden_background(top: _Nodes, x: str, contract: Contract) -> str:
     r = int(math.ceil(float(contract.coc_scale_px) / 2.0))
     if r == 0:
         return rgb  # nothing can hide anything: the fill is the AIF itself
-    # both passes as row maxima (onnxruntime's (1, k) MaxPool is ~2x faster than its (k, 1) one):
-    # rows, transpose, rows, transpose back
-    far = top.op("MaxPool", coc, kernel_shape=[1, 2 * r + 1], pads=[0, r, 0, r], strides=[1, 1])
-    far = top.op("MaxPool", top.op("Transpose", far, perm=[0, 1, 3, 2]), kernel_shape=[1, 2 * r + 1], pads=[0, r, 0, r],
-                 strides=[1, 1])
-    far = top.op("Transpose", far, perm=[0, 1, 3, 2])
+    far = _window_max(top, _window_max(top, coc, r, 3, w), r, 2, h)  # rows, then columns (as ops.holes.occluders)
     hide = top.op("Less", coc, top.op("Sub", far, top.c("bg.jump", HIDDEN_JUMP_PX)))
     keep = top.op("Cast", top.op("Not", hide), to=TensorProto.FLOAT)
     # the pyramid of push_pull_fill on the zero-padded 2^L square, with level 0 left unpadded:
@@ -152,6 +147,25 @@ def _hidden_background(top: _Nodes, x: str, contract: Contract) -> str:
     up = _upsample2(top, top.op("Slice", filled, top.c("bg.start", [0, 0], np.int64), need, top.c("bg.axes", [2, 3], np.int64)))
     up = top.op("Slice", up, top.c("bg.start", [0, 0], np.int64), top.c("bg.end", [h, w], np.int64), top.c("bg.axes", [2, 3], np.int64))
     return top.op("Add", top.op("Mul", keep, rgb), top.op("Mul", top.op("Sub", top.c("bg.one", 1.0), keep), up))
+
+
+def _window_max(g: _Nodes, x: str, r: int, axis: int, size: int) -> str:
+    """The max of ``x`` over ``[i - r, i + r]`` along ``axis`` (2 or 3, ``size`` long), nothing
+    beyond the edges: as ``MaxPool`` with a ``2r + 1`` window and ``r`` of padding, exactly, but
+    as ``log2(2r + 1)`` maxima of two shifted ``Slice``s (-inf padded): ``m[i]`` holds the max of
+    ``x[i .. i + span - 1]``, doubled until ``span`` reaches ``2r + 1``. ~3x faster on CPU at
+    r = 21 (onnxruntime's ``MaxPool`` reads the whole window for every pixel)."""
+    pads = [0] * 8
+    pads[axis] = pads[4 + axis] = r
+    cur = g.op("Pad", x, g.c(f"wm.pads{axis}_{r}", pads, np.int64), g.c("wm.ninf", -np.inf), mode="constant")
+    length, span, k = size + 2 * r, 1, 2 * r + 1
+    ax = g.c(f"wm.ax{axis}", [axis], np.int64)
+    while span < k:
+        shift = min(span, k - span)  # the last step overlaps the window already covered
+        head = g.op("Slice", cur, g.c("wm.zero", [0], np.int64), g.c(f"wm.end{axis}_{length - shift}", [length - shift], np.int64), ax)
+        tail = g.op("Slice", cur, g.c(f"wm.start{shift}", [shift], np.int64), g.c(f"wm.end{axis}_{length}", [length], np.int64), ax)
+        cur, length, span = g.op("Max", head, tail), length - shift, span + shift
+    return cur
 
 
 def _pull(g: _Nodes, image: str, weight: str, pads: list[int]) -> tuple[str, str]:
@@ -241,10 +255,10 @@ def _band(b: GraphBuilder, k: int, n: int, side: int, pos: str, side_mask: str, 
 
 def _tile(b: GraphBuilder, k: int, window: str, kernels: Mapping[int, np.ndarray], scales: Mapping[int, int], src: np.ndarray,
           cfg: ModelConfig, contract: Contract, diameters: np.ndarray, fp16: bool, rows: bool) -> onnx.GraphProto:
-    """Then-branch: tile ``k``'s accumulators ``(1, B, 3, 6, win, win)`` from the outer ``window``;
-    band ``n``, side ``s`` runs where ``band_active[k, n - 1, s]``. A band that does not run
-    gives an empty ``(0, B, 3, 6, win, win)``, so the sum over the bands costs only the bands
-    that ran."""
+    """Then-branch: tile ``k``'s accumulators ``(B, 3, 6, win, win)``, flattened to ``(1, B 18 win^2)``,
+    from the outer ``window``; band ``n``, side ``s`` runs where ``band_active[k, n - 1, s]``. A
+    band that does not run gives an empty ``(0, B, 3, 6, win, win)``, so the sum over the bands
+    costs only the bands that ran."""
     g = _Nodes(GraphBuilder(b.count), f"t{k}")
     c_max, blocks = float(contract.coc_scale_px), int(cfg.blocks)
     win = src.shape[-1]
@@ -279,20 +293,24 @@ def _tile(b: GraphBuilder, k: int, window: str, kernels: Mapping[int, np.ndarray
                 g.b.count = max(g.b.count, skip.b.count) + 1
                 parts.append(g.op("If", used, then_branch=then, else_branch=else_graph))
     if len(parts) > 1:
-        base = g.op("ReduceSum", g.op("Concat", *parts, axis=0), g.c("ax0", [0], np.int64), keepdims=1)
-    return _branch(g, base, f"t{k}_network")
+        # the sum of the parts that ran as a (1, P) x (P, N) MatMul with ones: ~3x faster on CPU
+        # than onnxruntime's ReduceSum over axis 0
+        stacked = g.op("Reshape", g.op("Concat", *parts, axis=0), g.c("flat", [0, -1], np.int64))
+        count = g.op("Concat", g.c("one_i", [1], np.int64), g.op("Shape", stacked, end=1), axis=0)
+        ones = g.op("ConstantOfShape", count, value=helper.make_tensor("one", TensorProto.FLOAT, [1], [1.0]))
+        return _branch(g, g.op("MatMul", ones, stacked), f"t{k}_network")  # the output as it is made: no copy
+    return _branch(g, g.op("Reshape", base, g.c("flat1", [1, -1], np.int64)), f"t{k}_network")
 
 
 def _passthrough(b: GraphBuilder, k: int, window: str, src: np.ndarray, norm: Normalization) -> onnx.GraphProto:
-    """Else-branch: the tile's core as in-focus light (no convolution)."""
+    """Else-branch: the tile's core as in-focus light (no convolution), ``(1, B 18 win^2)`` as :func:`_tile`."""
     g = _Nodes(GraphBuilder(b.count), f"t{k}.pass")
     norm_rgb, rgb = _linear_rgb(g, window, norm)
     m = g.c("src", src[None, None])
     ones = g.op("Add", g.op("Mul", norm_rgb, g.c("zero", 0.0)), m)  # (B, 3, win, win) of the mask
     zeros6 = g.op("Mul", g.op("Concat", rgb, rgb, axis=1), g.c("zero", 0.0))
     parts = g.op("Concat", zeros6, g.op("Mul", rgb, m), ones, zeros6, axis=1)
-    win = src.shape[-1]
-    return _branch(g, g.op("Reshape", parts, g.c("acc_shape", [1, -1, 3, 6, win, win], np.int64)), f"t{k}_pass")
+    return _branch(g, g.op("Reshape", parts, g.c("flat", [1, -1], np.int64)), f"t{k}_pass")
 
 
 def build_lens_graph(kernels: Mapping[int, np.ndarray], diameters: np.ndarray, cfg: ModelConfig, contract: Contract,
@@ -335,9 +353,10 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], diameters: np.ndarray, c
         b.count += 10_000  # branch-local names stay unique across branches
         other = _passthrough(b, k, window, source_masks[k], contract.normalization)
         b.count += 10_000
-        placed.append(top.op("If", cond, then_branch=then, else_branch=other))  # (1, B, 3, 6, win, win)
+        placed.append(top.op("If", cond, then_branch=then, else_branch=other))  # (1, B 18 win^2)
     # overlap-add of the windows in one pass: (T, B, 3, 6, win, win) -> (B, 18 win^2, T) -> Col2Im
-    stacked = top.op("Concat", *placed, axis=0) if len(placed) > 1 else placed[0]
+    stacked = top.op("Concat", *placed, axis=0) if len(placed) > 1 else placed[0]  # (T, B 18 win^2)
+    stacked = top.op("Reshape", stacked, b.const("acc_shape", [n_t, -1, 3, 6, win, win], np.int64))
     cols_ = top.op("Reshape", top.op("Transpose", stacked, perm=[1, 2, 3, 4, 5, 0]), b.const("cols_shape", [0, 18 * win * win, n_t], np.int64))
     total = top.op("Col2Im", cols_, b.const("canvas_hw", [hp, wp], np.int64), b.const("block_hw", [win, win], np.int64),
                    strides=[t, t])
