@@ -13,6 +13,7 @@ import logging
 import sys
 
 from neuralbokeh.core.cli import HelpFormatter, run_cli
+from neuralbokeh.core.io import prepare_output
 from neuralbokeh.export.exporter import export_checkpoint
 from neuralbokeh.export.lens_graph import LENS_DEFAULT_KERNELS
 from neuralbokeh.export.lowrank import DEFAULT_KERNELS
@@ -35,12 +36,14 @@ def main(argv: list[str] | None = None) -> int:
                         f"EPS / sqrt(#convolutions); default {DEFAULT_KERNELS})")
     p.add_argument("--tolerance", type=float, help="max abs parity error, normalised units (default 1e-4; 2e-2 with --fp16)")
     p.add_argument("--threads", type=int, default=None, help="onnxruntime threads for the parity check")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     p.add_argument("-v", "--verbose", action="store_true", help="info logging, and tracebacks with errors")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     try:
+        prepare_output(args.out, args.overwrite)  # before minutes of export and parity checks
         report = export_checkpoint(args.checkpoint, args.out, args.opset, args.fp16, args.kernels, args.tolerance, args.threads)
-    except (FileNotFoundError, ValueError) as e:
+    except (FileNotFoundError, FileExistsError, PermissionError, ValueError) as e:
         raise SystemExit(f"error: {e}")
     meta = report["metadata"]
     ranks = [r for r in meta["kernel_ranks"].values() if r]

@@ -58,6 +58,25 @@ def test_cli_composites_in_linear_light(busy_onnx, tmp_path):
     assert np.all(edge <= np.maximum(plate[8, 15], blurred[8, 15]) + 1e-6)
 
 
+def test_cli_never_overwrites_without_being_told(busy_onnx, tmp_path):
+    m = OnnxBokeh(busy_onnx, threads=1)
+    for name, img in zip(("plate", "render", "depth", "alpha"), _inputs(m)):
+        write_image(tmp_path / f"{name}.exr", img)
+    args = ["--model", str(busy_onnx), "--render", str(tmp_path / "render.exr"), "--depth", str(tmp_path / "depth.exr"),
+            "--alpha", str(tmp_path / "alpha.exr"), "--focus", "2.0", "--threads", "1"]
+    plate = (tmp_path / "plate.exr").read_bytes()
+    for extra in ([], ["--overwrite"]):  # its own plate: refused even with --overwrite
+        with pytest.raises(SystemExit, match="is one of the inputs"):
+            main([*args, "--plate", str(tmp_path / "plate.exr"), "--out", str(tmp_path / "plate.exr"), *extra])
+    assert (tmp_path / "plate.exr").read_bytes() == plate
+    (tmp_path / "comp.exr").write_bytes(b"an earlier render")
+    with pytest.raises(SystemExit, match="already exists.*--overwrite"):
+        main([*args, "--plate", str(tmp_path / "plate.exr"), "--out", str(tmp_path / "comp.exr")])
+    assert (tmp_path / "comp.exr").read_bytes() == b"an earlier render"
+    assert main([*args, "--plate", str(tmp_path / "plate.exr"), "--out", str(tmp_path / "comp.exr"), "--overwrite"]) == 0
+    assert read_image(tmp_path / "comp.exr").shape == (m.height, m.width, 3)
+
+
 def test_cli_sequence_with_focus_pull_and_png(busy_onnx, tmp_path):
     m = OnnxBokeh(busy_onnx, threads=1)
     plate, render, depth, alpha = _inputs(m, seed=1)

@@ -141,6 +141,19 @@ def test_resume_refuses_another_model(tiny_dataset, tmp_path):
         train(other, resume=first["checkpoint"], progress=False)
 
 
+def test_resume_refuses_to_write_into_another_run(tiny_dataset, tmp_path):
+    done = train(_config(tmp_path / "a", tiny_dataset, steps=2), progress=False)
+    partial = train(_config(tmp_path / "b", tiny_dataset, steps=4), progress=False, stop_at=2)
+    before = (tmp_path / "a" / "run" / "checkpoint.pt").read_bytes()
+    with pytest.raises(ValueError, match="another run's checkpoint"):  # b's checkpoint resumed into a's folder
+        train(_config(tmp_path / "a", tiny_dataset, steps=4), resume=partial["checkpoint"], progress=False)
+    assert (tmp_path / "a" / "run" / "checkpoint.pt").read_bytes() == before  # a's finished run is intact
+    assert Path(done["checkpoint"]).is_file()
+    # into an empty folder, another run's checkpoint continues (a fork); into its own, as always
+    forked = train(_config(tmp_path / "c", tiny_dataset, steps=4), resume=partial["checkpoint"], progress=False)
+    assert forked["steps"] == 4
+
+
 def test_non_finite_steps_are_skipped_then_abort(tiny_dataset, tmp_path, monkeypatch):
     real = loop_module.compute_loss
     calls = {"n": 0}

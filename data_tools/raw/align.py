@@ -8,11 +8,17 @@ highlights count no more than shadows. The slices are then resampled (bicubic) i
 reference frame and all are cropped to the largest centred rectangle that every warped slice
 covers. The residual misalignment is measured by registering each aligned slice to the
 reference again with a translation-only model; it is reported in pixels.
+
+A fitted link (slice to its neighbour) is kept only where it beats the identity on the stack's
+own photo-consistency (:func:`photo_consistency`) by :data:`KEEP_GAIN`: on an already registered
+stack a similarity fit still lowers the registration loss a little, by trading a difference in
+blur for a spurious magnification, and the fused all-in-focus image then gets worse.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -20,10 +26,20 @@ import torch
 import torch.nn.functional as F
 from kornia.geometry import create_meshgrid
 from kornia.geometry.linalg import transform_points
+from kornia.filters import gaussian_blur2d
 from kornia.geometry.transform import HomographyWarper, ImageRegistrator
 from kornia.geometry.transform.image_registrator import Similarity
 
 log = logging.getLogger(__name__)
+
+# A fit must lower the photo-consistency error by this fraction to replace the identity. Measured
+# on synthetic 96x64 DNG stacks (tests/test_raw.py): registered stacks gave -15 % to +1.1 %, stacks
+# with 3 % focus breathing +3 % to +24 % on the links whose fit was right.
+KEEP_GAIN = 0.03
+# relative blurs (working px, sigma) a neighbour may differ by: photo-consistency forgives them
+_BLUR_SIGMAS = (0.0, 0.7, 1.4, 2.8, 5.6)
+_PRESMOOTH = 2.0  # px: noise and the warp's own interpolation smoothing stop counting
+_WINDOW = 4.0  # px: the neighbourhood over which one relative blur is chosen
 
 
 @dataclass(frozen=True)
@@ -36,10 +52,12 @@ class SliceAlignment:
     rotation_deg: float
     shift_px: tuple[float, float]
     residual_px: float
+    gain: float = 0.0  # photo-consistency gain of this slice's fitted link over the identity
+    kept: bool = True  # the fit was used (False: the link was left as the identity)
 
     def to_dict(self) -> dict:
         return {"scale": self.scale, "rotation_deg": self.rotation_deg, "shift_px": list(self.shift_px),
-                "residual_px": self.residual_px}
+                "residual_px": self.residual_px, "gain": self.gain, "kept": self.kept}
 
 
 def _log_luma(img: np.ndarray, max_side: int) -> torch.Tensor:
@@ -61,6 +79,41 @@ def _fit(src: torch.Tensor, dst: torch.Tensor, rotation: bool, scale: bool) -> t
     levels = max(1, min(4, int(np.log2(min(src.shape[-2:]) / 16))))
     reg = _registrator(Similarity(rotation=rotation, scale=scale, shift=True), levels)
     return reg.register(src, dst).detach()
+
+
+def _warp_luma(y: torch.Tensor, matrix: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    h, w = y.shape[-2:]
+    grid = create_meshgrid(h, w, normalized_coordinates=True, dtype=torch.float64)
+    grid = transform_points(matrix.double(), grid.reshape(1, -1, 2)).reshape(1, h, w, 2)
+    out = F.grid_sample(y.double(), grid, mode="bilinear", padding_mode="border", align_corners=True)
+    return out, (grid.abs() <= 1.0 - 2.0 / min(h, w)).all(dim=-1)[:, None].double()
+
+
+def _smooth(x: torch.Tensor, sigma: float) -> torch.Tensor:
+    if sigma == 0:
+        return x
+    k = 2 * math.ceil(3 * sigma) + 1
+    return gaussian_blur2d(x, (k, k), (sigma, sigma), border_type="replicate")
+
+
+def photo_consistency(src: torch.Tensor, dst: torch.Tensor, mask: torch.Tensor) -> float:
+    """Mean blur-equalised L1 between two log-luminance images ``(1, 1, H, W)`` over ``mask``:
+    in each neighbourhood the smaller error of either image blurred by any of ``_BLUR_SIGMAS``
+    against the other, so that a difference in defocus costs nothing and a geometric misfit does."""
+    a, b = _smooth(src.double(), _PRESMOOTH), _smooth(dst.double(), _PRESMOOTH)
+    weight = _smooth(mask, _WINDOW).clamp_min(1e-6)
+    errors = [_smooth((x - y).abs() * mask, _WINDOW) / weight
+              for s in _BLUR_SIGMAS for x, y in ((_smooth(a, s), b), (a, _smooth(b, s)))]
+    best = torch.stack(errors).min(dim=0).values
+    return float((best * mask).sum() / mask.sum().clamp_min(1.0))
+
+
+def fit_gain(src: torch.Tensor, dst: torch.Tensor, matrix: torch.Tensor) -> float:
+    """How much ``matrix`` (src -> dst) lowers :func:`photo_consistency` relative to the identity,
+    both measured on the pixels the warped ``src`` covers (a fraction; <= 0: no better)."""
+    warped, mask = _warp_luma(src, matrix)
+    before = photo_consistency(src, dst, mask)
+    return (before - photo_consistency(warped, dst, mask)) / max(before, 1e-12)
 
 
 def _warp(img: np.ndarray, matrix: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
@@ -120,18 +173,25 @@ def align_stack(slices: list[np.ndarray], reference: int, rotation: bool = False
             raise ValueError(f"slice {k} has shape {img.shape}, the stack's first slice {slices[0].shape}")
     lumas = [_log_luma(img, max_side) for img in slices]
     ref = lumas[reference]
-    chained: dict[int, torch.Tensor] = {reference: torch.eye(3, dtype=torch.float64)[None]}
+    eye = torch.eye(3, dtype=torch.float64)[None]
+    chained: dict[int, torch.Tensor] = {reference: eye}
+    gains: dict[int, float] = {reference: 0.0}
     for step in (-1, 1):
         k = reference + step
         while 0 <= k < len(slices):
             fit = _fit(lumas[k], lumas[k - step], rotation, True).double()
-            chained[k] = fit @ chained[k - step]
+            gains[k] = fit_gain(lumas[k], lumas[k - step], fit)
+            chained[k] = (fit if gains[k] >= KEEP_GAIN else eye) @ chained[k - step]
             k += step
     aligned, info, valid = [], [], np.ones((h, w), bool)
     for k, img in enumerate(slices):
-        if k == reference:
+        kept = gains[k] >= KEEP_GAIN
+        if k != reference and not kept:
+            log.info("slice %d: fit gains %.1f %% photo-consistency over the identity (< %.0f %%): link left as the identity",
+                     k, 100 * gains[k], 100 * KEEP_GAIN)
+        if torch.equal(chained[k], eye):  # nothing to resample: the slice is used as decoded
             aligned.append(img)
-            info.append(SliceAlignment(1.0, 0.0, (0.0, 0.0), 0.0))
+            info.append(SliceAlignment(1.0, 0.0, (0.0, 0.0), 0.0, gains[k], kept))
             continue
         matrix = chained[k]
         out, ok = _warp(img, matrix)
@@ -145,7 +205,7 @@ def align_stack(slices: list[np.ndarray], reference: int, rotation: bool = False
         rot = float(np.degrees(np.arctan2(float(linear[1, 0]) * w / h, float(linear[0, 0]))))
         residual = _fit(_log_luma(out, max_side), ref, False, False)
         res_px = float(np.hypot(float(residual[0, 0, 2]) * w / 2, float(residual[0, 1, 2]) * h / 2))
-        info.append(SliceAlignment(s, rot, shift, res_px))
+        info.append(SliceAlignment(s, rot, shift, res_px, gains[k], kept))
         aligned.append(out)
         log.info("slice %d: magnification %.5f, rotation %.3f deg, shift (%.2f, %.2f) px, residual %.3f px",
                  k, s, rot, shift[0], shift[1], res_px)

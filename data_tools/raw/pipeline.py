@@ -16,7 +16,7 @@ import torch.nn.functional as F
 from neuralbokeh import __version__
 from neuralbokeh.data.dataset import write_scene
 from neuralbokeh.core.io import read_image
-from neuralbokeh.core.optics import ThinLens
+from neuralbokeh.core.optics import SensorWindow, ThinLens
 
 from .align import align_stack
 from .decode import (
@@ -172,11 +172,12 @@ def process_stack(stack: Path, out: Path, args: argparse.Namespace, failures: li
         fused = fuse_stack(aligned, focus_kept, args.window, known_diopters=dio)
     else:
         fused = fuse_stack(aligned, focus_kept, args.window)
-    # the scene's lens: the cropped sensor mapped onto the output width (CoC in output pixels)
-    long_side = max(decoded_h, decoded_w)
-    pitch_mm = lens.sensor_width_mm / long_side * (crop_w / size[0])
-    scene_lens = ThinLens(lens.focal_length_mm, lens.f_number, pitch_mm * size[0])
-    cocs = [scene_lens.coc_px(fused.depth_m.astype(np.float64), fm, size[0], signed=True) for fm in focus_kept]
+    # the camera's lens on its whole sensor (the same for every stack it shot); the scene is the
+    # alignment crop's window on that sensor, so its CoC maps are in the output's own pixels
+    scene_lens = ThinLens(lens.focal_length_mm, lens.f_number, lens.sensor_width_mm * decoded_w / max(decoded_h, decoded_w))
+    window = SensorWindow.from_crop((crop[0].start, crop[0].stop), (crop[1].start, crop[1].stop), decoded_h, decoded_w)
+    cocs = [scene_lens.coc_px(fused.depth_m.astype(np.float64), fm, size[0], signed=True, window=window)
+            for fm in focus_kept]
     generator = {
         "name": "data_tools.raw", "version": __version__, "stack": str(stack),
         "files": [f.name for f, _ in kept], "failed": [s for s in failures if str(stack) in s],
@@ -191,7 +192,7 @@ def process_stack(stack: Path, out: Path, args: argparse.Namespace, failures: li
         "depth_confidence_mean": float(fused.confidence.mean()), "sensor_width_mm_given": lens.sensor_width_mm,
     }
     write_scene(folder, fused.aif.astype(np.float64), fused.depth_m.astype(np.float64),
-                [a.astype(np.float64) for a in aligned], cocs, scene_lens, focus_kept, None, generator)
+                [a.astype(np.float64) for a in aligned], cocs, scene_lens, focus_kept, None, generator, window)
     residual = max((a.residual_px for a in info), default=0.0)
     return {"stack": stack.name, "slices": len(aligned), "size": size, "residual_px": residual,
             "max_coc_px": float(max(np.abs(c).max() for c in cocs))}

@@ -54,6 +54,23 @@ def atomic_write(path: str | os.PathLike) -> Iterator[Path]:
             tmp.unlink()
 
 
+def prepare_output(path: str | os.PathLike, overwrite: bool = False, flag: str = "--overwrite") -> Path:
+    """Check, before any work, that ``path`` can be written: its folder is created and must be
+    writable, and an existing file or folder there is replaced only with ``overwrite``.
+
+    Raises:
+        FileExistsError: ``path`` exists and ``overwrite`` is False (the message names ``flag``).
+        PermissionError: its folder cannot be written.
+    """
+    path = Path(path)
+    if path.exists() and not overwrite:
+        raise FileExistsError(f"{path} already exists: choose another output or give {flag} to replace it")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if not os.access(path.parent, os.W_OK | os.X_OK):
+        raise PermissionError(f"cannot write into {path.parent} (no write permission) for {path.name}")
+    return path
+
+
 @contextlib.contextmanager
 def atomic_directory(path: str | os.PathLike) -> Iterator[Path]:
     """``with atomic_directory(folder) as tmp:`` fill the temporary folder ``tmp``; on leaving the

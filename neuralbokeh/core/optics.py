@@ -28,6 +28,57 @@ MM_PER_M = 1000.0
 
 
 @dataclass(frozen=True)
+class SensorWindow:
+    """The part of the sensor an image covers, in fractions of the full sensor's width and height
+    (0 at its left and top edges): ``(0, 0, 1, 1)`` is the whole sensor. A crop of a frame (an
+    alignment crop, a 2.39:1 plate cut from a 3:2 sensor) is a window on the same lens, not
+    another lens: its pixels keep the pitch of the sensor they lie on.
+
+    Raises:
+        ValueError: a fraction outside [0, 1], an empty window, or one reaching past the sensor.
+    """
+
+    left: float = 0.0
+    top: float = 0.0
+    width: float = 1.0
+    height: float = 1.0
+
+    def __post_init__(self) -> None:
+        for name in ("left", "top", "width", "height"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and 0.0 <= v <= 1.0):
+                raise ValueError(f"sensor window {name} must be a fraction of the sensor in [0, 1], got {v!r}")
+        if self.width <= 0 or self.height <= 0:
+            raise ValueError(f"sensor window must have width and height > 0, got {self.width} x {self.height}")
+        if self.left + self.width > 1.0 + 1e-9 or self.top + self.height > 1.0 + 1e-9:
+            raise ValueError(f"sensor window {self.to_dict()} reaches past the sensor (left + width and top + height "
+                             "must be <= 1)")
+
+    @classmethod
+    def from_crop(cls, rows: tuple[int, int], cols: tuple[int, int], full_height_px: int, full_width_px: int) -> SensorWindow:
+        """The window of the pixel rows ``[r0, r1)`` and columns ``[c0, c1)`` of a full frame."""
+        (r0, r1), (c0, c1) = rows, cols
+        return cls(c0 / full_width_px, r0 / full_height_px, (c1 - c0) / full_width_px, (r1 - r0) / full_height_px)
+
+    def sensor_width_px(self, image_width_px: float) -> float:
+        """The width (px) the whole sensor has at the scale of an image of this window."""
+        return image_width_px / self.width
+
+    def to_dict(self) -> dict[str, float]:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any] | None) -> SensorWindow:
+        """Inverse of :meth:`to_dict`; None is the whole sensor."""
+        if d is None:
+            return cls()
+        keys = {"left", "top", "width", "height"}
+        if set(d) != keys:
+            raise ValueError(f"sensor window must have exactly the keys {sorted(keys)}, got {sorted(d)}")
+        return cls(**{k: float(v) for k, v in d.items()})
+
+
+@dataclass(frozen=True)
 class ThinLens:
     """An ideal thin lens on a sensor of known width.
 
@@ -76,14 +127,17 @@ class ThinLens:
         d_f = focus_m * MM_PER_M
         return f * d_f / (d_f - f)
 
-    def coc_constant_pxmm(self, focus_m: float, image_width_px: int) -> float:
-        """K = (w_i / w_s) a d_s in px*mm: the CoC is K (1/d_f - 1/d_p) with distances in mm."""
-        if int(image_width_px) != image_width_px or image_width_px <= 0:
-            raise ValueError(f"image_width_px must be a positive integer, got {image_width_px!r}")
+    def coc_constant_pxmm(self, focus_m: float, image_width_px: float) -> float:
+        """K = (w_i / w_s) a d_s in px*mm: the CoC is K (1/d_f - 1/d_p) with distances in mm
+        (``image_width_px``: the px the whole sensor width spans, > 0)."""
+        if isinstance(image_width_px, bool) or not (isinstance(image_width_px, (int, float)) and
+                                                    math.isfinite(image_width_px) and image_width_px > 0):
+            raise ValueError(f"image_width_px must be a finite number of px > 0, got {image_width_px!r}")
         d_s = self.sensor_distance_mm(focus_m)
         return (image_width_px / self.sensor_width_mm) * self.aperture_diameter_mm * d_s
 
-    def coc_px(self, depth_m: Any, focus_m: float, image_width_px: int, signed: bool = False) -> Any:
+    def coc_px(self, depth_m: Any, focus_m: float, image_width_px: int, signed: bool = False,
+               window: SensorWindow | None = None) -> Any:
         """Circle-of-confusion diameter in pixels, eq. (1).
 
         Args:
@@ -91,9 +145,11 @@ class ThinLens:
                 array or a torch tensor of any shape (e.g. ``(H, W)`` or ``(B, 1, H, W)``);
                 each value > 0, ``+inf`` allowed (gives the finite limit).
             focus_m: focus distance in m, greater than the focal length; ``inf`` allowed.
-            image_width_px: width of the image in pixels (the sensor width maps onto it).
+            image_width_px: width of the image in pixels (the sensor width maps onto it, or the
+                ``window``'s width when the image covers only part of the sensor).
             signed: if True the result is negative in front of the focus plane (depth < focus)
                 and positive behind it; otherwise the absolute diameter.
+            window: the part of the sensor the image covers (default: all of it).
 
         Returns:
             The CoC diameter(s) in px, same type/shape (and dtype/device for arrays and tensors)
@@ -103,6 +159,8 @@ class ThinLens:
             ValueError: a depth is <= 0, NaN or -inf (the message gives the number of bad
                 pixels and the first location), or the focus distance is invalid.
         """
+        if window is not None:
+            image_width_px = window.sensor_width_px(image_width_px)
         k = self.coc_constant_pxmm(focus_m, image_width_px)
         inv_focus = 1.0 / (float(focus_m) * MM_PER_M)
         scalar = isinstance(depth_m, (int, float))

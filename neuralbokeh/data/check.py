@@ -22,7 +22,7 @@ import numpy as np
 
 from ..core.cli import HelpFormatter
 from ..core.io import read_image
-from ..core.optics import ThinLens
+from ..core.optics import SensorWindow, ThinLens
 from .dataset import find_scenes, read_scene_meta
 
 log = logging.getLogger(__name__)
@@ -77,9 +77,11 @@ def check_scene(folder: str | os.PathLike, coc_tolerance: tuple[float, float] = 
             depth = None
     try:
         lens = ThinLens.from_dict(meta["lens"])
+        window = SensorWindow.from_dict(meta.get("sensor_window"))
     except (KeyError, TypeError, ValueError) as e:
-        problems.append(f"{folder / 'scene.json'}: bad lens {meta['lens']!r} ({e})")
-        lens = None
+        problems.append(f"{folder / 'scene.json'}: bad lens {meta['lens']!r} or sensor window "
+                        f"{meta.get('sensor_window')!r} ({e})")
+        lens = window = None
     largest = 0.0
     rtol, atol = coc_tolerance
     for k, sl in enumerate(meta["slices"]):
@@ -94,7 +96,7 @@ def check_scene(folder: str | os.PathLike, coc_tolerance: tuple[float, float] = 
         largest = max(largest, float(np.abs(coc).max()))
         if depth is not None and lens is not None:
             try:
-                want = lens.coc_px(depth, float(sl["focus_m"]), w, signed=True)
+                want = lens.coc_px(depth, float(sl["focus_m"]), w, signed=True, window=window)
             except (KeyError, ValueError) as e:
                 problems.append(f"{folder / 'scene.json'}: slice {k}: {e}")
                 continue

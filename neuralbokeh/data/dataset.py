@@ -6,8 +6,8 @@ Format (``format_version`` 1): one folder per scene (any name not starting with 
     depth.exr        planar depth along the optical axis in metres, float32, > 0, +inf allowed
     defocus_<k>.exr  slice k: the defocused linear RGB at focus distance k
     coc_<k>.exr      slice k: signed CoC diameter in px (negative in front of the focus plane)
-    scene.json       image size, lens (mm), aperture, focus distances (m), per-slice max |CoC|,
-                     generator and seed, units
+    scene.json       image size, lens (mm), the image's window on the lens's sensor, aperture,
+                     focus distances (m), per-slice max |CoC|, generator and seed, units
 
 A scene is written into a hidden temporary folder and renamed into place when complete, so a
 scene folder either is whole or does not exist (tools can resume by skipping existing scenes).
@@ -31,7 +31,7 @@ from ..core.checks import check_finite, check_nonnegative, check_positive, check
 from ..core.contract import Contract
 from ..core.io import atomic_directory, read_image, read_json, write_image, write_json
 from ..core.normalization import Normalization
-from ..core.optics import ThinLens
+from ..core.optics import SensorWindow, ThinLens
 
 log = logging.getLogger(__name__)
 
@@ -56,6 +56,7 @@ def write_scene(
     focus_distances_m: Sequence[float],
     aperture: ApertureModel | None,
     generator: dict[str, Any],
+    sensor_window: SensorWindow | None = None,
 ) -> Path:
     """Write one scene atomically in the dataset format.
 
@@ -70,6 +71,8 @@ def write_scene(
         aperture: the aperture model of the defocus images; None when unknown (photographs:
             the lens itself is what the network learns).
         generator: provenance (tool name, version, seed, options); JSON-serialisable.
+        sensor_window: the part of ``lens``'s sensor the image covers (default: all of it);
+            the CoC maps are in this image's px (``lens.coc_px(..., window=sensor_window)``).
 
     Returns:
         The scene folder.
@@ -103,6 +106,7 @@ def write_scene(
         "format_version": FORMAT_VERSION,
         "image_size": {"width": dims["W"], "height": dims["H"]},
         "lens": lens.to_dict(),
+        "sensor_window": (sensor_window or SensorWindow()).to_dict(),
         "aperture": aperture.to_dict() if aperture is not None else None,
         "focus_distances_m": [float(f) for f in focus_distances_m],
         "depth_range_m": [float(finite.min()) if finite.size else None, far if math.isfinite(far) else None],

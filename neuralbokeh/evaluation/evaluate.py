@@ -42,7 +42,7 @@ from ..core.apertures import ApertureModel
 from ..core.cli import HelpFormatter
 from ..data.dataset import FocalStackDataset
 from ..data.check import require_sound
-from ..core.io import atomic_write, write_json, write_text
+from ..core.io import atomic_write, write_json, write_text, prepare_output
 from .metrics import image_metrics, pareto_front, tonemap_srgb
 from ..core.contract import Contract
 from ..render import scatter_defocus
@@ -198,6 +198,8 @@ def write_report(out: Path, result: dict[str, Any], samples: list[dict], info: d
     what = {"test": "held-out", "train": "training", "all": "all"}.get(info.get("split", "test"), "")
     lines = [f"# Evaluation on {info['samples']} {what} samples ({info['data']})", "",
              f"Threads: {info['threads']}; time: median of {info['repeats']} runs per sample, median over samples.", "",
+             *([] if info.get("aperture") else ["The data declares no single aperture (photographs, light fields): the baselines "
+                                                "that need an aperture shape use a disk, so none of them is an oracle.", ""]),
              "| method | PSNR lin dB | SSIM lin | PSNR sRGB dB | SSIM sRGB | FLIP | ms/MP |", "|---|---|---|---|---|---|---|"]
     for n in names:
         m = methods[n]
@@ -276,6 +278,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--models", type=Path, nargs="*", default=[], help=".onnx files or .pt checkpoints")
     p.add_argument("--baselines", default="all", help="'all', 'none' or a comma list of " + ", ".join(BASELINES))
     p.add_argument("--out", type=Path, required=True, help="report folder (report.json, report.md, plots, image grids)")
+    p.add_argument("--overwrite", action="store_true", help="replace a report already in --out")
     p.add_argument("--split", choices=("test", "train", "all"), default="test",
                    help="which scenes to score: the held-out ones, the training ones or the whole dataset")
     p.add_argument("--test-fraction", type=float, default=None,
@@ -290,6 +293,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stdout)
     torch.set_num_threads(args.threads)
     try:
+        prepare_output(args.out / "report.json", args.overwrite)  # before the scoring, which can take minutes
         require_sound(args.data)
         loaded = {str(m.name): load_model_method(m, args.threads) for m in args.models}
         test_fraction, split_seed = split_of_models(list(loaded.values()), args.test_fraction, args.split_seed)
@@ -309,7 +313,7 @@ def main(argv: list[str] | None = None) -> int:
         methods.update(baseline_methods(names, aperture))
         if not methods:
             raise ValueError("nothing to evaluate: give --models and/or --baselines")
-    except (FileNotFoundError, ValueError) as e:
+    except (FileNotFoundError, FileExistsError, PermissionError, ValueError) as e:
         raise SystemExit(f"error: {e}")
     log.info("scoring %d sample(s) of split %r (test_fraction %s, split_seed %d) with %d method(s)", n, args.split,
              test_fraction, split_seed, len(methods))

@@ -33,7 +33,8 @@ import OpenImageIO as oiio
 from tqdm import tqdm
 
 from ..core.cli import HelpFormatter, run_cli
-from ..core.io import read_image, write_image
+from ..core.io import prepare_output, read_image, write_image
+from ..core.optics import SensorWindow
 from .masks import erode, gaussian_blur
 from .onnx_model import OnnxBokeh
 
@@ -127,9 +128,11 @@ def focus_at(curve: tuple[np.ndarray, np.ndarray], frame: int) -> float:
 
 
 def composite_frame(model: OnnxBokeh, plate: np.ndarray, render: np.ndarray, depth: np.ndarray, alpha: np.ndarray,
-                    focus_m: float, erode_px: int = 1, feather_px: float = 1.0, clamp_coc: bool = False) -> np.ndarray:
+                    focus_m: float, erode_px: int = 1, feather_px: float = 1.0, clamp_coc: bool = False,
+                    window: SensorWindow | None = None) -> np.ndarray:
     """One frame: ``a * model(render) + (1 - a) * plate`` in linear light with ``a`` the eroded,
-    smoothed mask. Shapes: plate/render ``(H, W, 3)``, depth/alpha ``(H, W)``; alpha in [0, 1]."""
+    smoothed mask. Shapes: plate/render ``(H, W, 3)``, depth/alpha ``(H, W)``; alpha in [0, 1];
+    ``window``: the plate's part of the lens's sensor when it is a crop (default: all of it)."""
     for name, img in (("plate", plate), ("render", render)):
         if img.shape != (model.height, model.width, 3):
             raise ValueError(f"{name} must be {model.width}x{model.height} RGB (the model's size), got {img.shape}")
@@ -137,7 +140,7 @@ def composite_frame(model: OnnxBokeh, plate: np.ndarray, render: np.ndarray, dep
         raise ValueError(f"alpha must be {model.width}x{model.height}, got {alpha.shape}")
     if not ((alpha >= 0) & (alpha <= 1)).all():
         raise ValueError(f"alpha must be in [0, 1], got values in [{alpha.min()}, {alpha.max()}]")
-    blurred = model.render(render, depth, focus_m, clamp_coc=clamp_coc)
+    blurred = model.render(render, depth, focus_m, clamp_coc=clamp_coc, window=window)
     a = gaussian_blur(erode(alpha.astype(np.float32), erode_px), feather_px)[:, :, None]
     return (a * blurred + (1.0 - a) * plate).astype(np.float32)
 
@@ -154,7 +157,11 @@ def main(argv: list[str] | None = None) -> int:
     focus.add_argument("--focus", type=float, help="focus distance in metres")
     focus.add_argument("--focus-curve", type=Path, help="CSV of frame,focus_m (a focus pull)")
     p.add_argument("--out", required=True, help="output file (.exr/.tif linear, .png sRGB)")
+    p.add_argument("--overwrite", action="store_true", help="replace existing output files")
     p.add_argument("--frames", help="first-last frame numbers for %%04d patterns, e.g. 1-48")
+    p.add_argument("--sensor-window", type=float, nargs=4, metavar=("LEFT", "TOP", "WIDTH", "HEIGHT"),
+                   help="the plate's part of the lens's sensor, as fractions of its width and height (a crop; "
+                        "default: the whole sensor, 0 0 1 1)")
     p.add_argument("--erode", type=int, default=1, help="mask erosion radius in px (default 1)")
     p.add_argument("--feather", type=float, default=1.0, help="mask Gaussian sigma in px (default 1.0)")
     p.add_argument("--threads", type=int, default=None, help="onnxruntime threads (default: all cores)")
@@ -174,9 +181,16 @@ def main(argv: list[str] | None = None) -> int:
                 raise ValueError(f"--out {args.out} needs a frame pattern such as %04d when --frames is given")
         else:
             frames = [None]
+        outputs = [_frame_path(args.out, frame) for frame in frames]
+        inputs = {_frame_path(a, f).resolve() for a in (args.plate, args.render, args.depth, args.alpha) for f in frames}
+        for out in outputs:  # before any frame is rendered
+            if out.resolve() in inputs:
+                raise ValueError(f"--out {out} is one of the inputs: it would be overwritten; choose another output")
+            prepare_output(out, args.overwrite)
         curve = read_focus_curve(args.focus_curve) if args.focus_curve else None
         if curve is not None and frames == [None]:
             raise ValueError("--focus-curve needs --frames")
+        window = SensorWindow(*args.sensor_window) if args.sensor_window else None
         model = OnnxBokeh(args.model, threads=args.threads, skip_in_focus=not args.no_skip)
         static: dict[str, np.ndarray] = {}
 
@@ -192,9 +206,8 @@ def main(argv: list[str] | None = None) -> int:
             focus_m = args.focus if curve is None else focus_at(curve, frame)
             comp = composite_frame(model, load(args.plate, frame, "rgb"), load(args.render, frame, "rgb"),
                                    load(args.depth, frame, "one"), load(args.alpha, frame, "one"), focus_m,
-                                   args.erode, args.feather, args.clamp_coc)
+                                   args.erode, args.feather, args.clamp_coc, window)
             out = _frame_path(args.out, frame)
-            out.parent.mkdir(parents=True, exist_ok=True)
             write_output(out, comp, args.clip_ldr)
             log.info("wrote %s (focus %.3f m, %d of %d tiles through the network)", out, focus_m,
                      model.last_tiles_run, model.num_tiles)

@@ -35,6 +35,7 @@ import onnxruntime as ort
 
 from ..core.checks import check_at_least, check_finite, format_location
 from ..core.contract import Contract
+from ..core.optics import SensorWindow
 from ..core.tiling import TileLayout
 
 log = logging.getLogger(__name__)
@@ -113,14 +114,17 @@ class OnnxBokeh:
     def num_tiles(self) -> int:
         return self.layout.num_tiles
 
-    def coc_px(self, depth_m: np.ndarray, focus_m: float) -> np.ndarray:
+    def coc_px(self, depth_m: np.ndarray, focus_m: float, window: SensorWindow | None = None) -> np.ndarray:
         """Signed CoC diameter in px (negative in front of the focus plane) from planar depth in m
-        (> 0, inf allowed) with the model's lens, at the model's image width."""
+        (> 0, inf allowed) with the model's lens, at the model's image width, for an image of
+        ``window`` (default: the whole sensor)."""
         if self.contract.lens is None:
             raise ValueError("this model carries no lens metadata; use render_coc with a CoC map")
-        return np.asarray(self.contract.lens.coc_px(np.asarray(depth_m, dtype=np.float64), float(focus_m), self.width, signed=True))
+        return np.asarray(self.contract.lens.coc_px(np.asarray(depth_m, dtype=np.float64), float(focus_m), self.width,
+                                                    signed=True, window=window))
 
-    def render(self, aif: np.ndarray, depth_m: np.ndarray, focus_m: float, clamp_coc: bool = False) -> np.ndarray:
+    def render(self, aif: np.ndarray, depth_m: np.ndarray, focus_m: float, clamp_coc: bool = False,
+               window: SensorWindow | None = None) -> np.ndarray:
         """Defocus ``aif`` as the lens focused at ``focus_m`` (m) would.
 
         Args:
@@ -128,13 +132,15 @@ class OnnxBokeh:
             depth_m: planar depth in m, ``(H, W)``, ``(H, W, 1)`` or with a leading batch; > 0, inf allowed.
             focus_m: focus distance in m (greater than the focal length).
             clamp_coc: clamp CoCs beyond the trained maximum (with a warning) instead of failing.
+            window: the part of the lens's sensor the image covers, when it is a crop
+                (default: the whole sensor).
 
         Returns:
             float32 linear RGB in the layout of ``aif``.
         """
         chw, batched = self._images(aif)
         depth = self._per_pixel("depth_m", depth_m, chw, batched)
-        return self._run(chw, self.coc_px(depth, focus_m), clamp_coc, batched)
+        return self._run(chw, self.coc_px(depth, focus_m, window), clamp_coc, batched)
 
     def render_coc(self, aif: np.ndarray, coc_px: np.ndarray, clamp_coc: bool = False) -> np.ndarray:
         """Like :meth:`render` with a signed CoC map in px (``(H, W)``, ``(H, W, 1)`` or batched)."""

@@ -13,7 +13,8 @@ Evaluation (held-out scenes): PSNR and SSIM (kornia) of the normalised images ma
 (``(n + 1) / 2``), next to three baselines on the same samples, computed once: the identity (the
 all-in-focus image returned unchanged), a CoC-driven Gaussian blur (the scatter renderer with a
 Gaussian profile, sigma = CoC / 4) and the "oracle" (the scatter renderer with the aperture the
-data's ``scene.json`` declares: exact on data it rendered; what knowing the lens is worth).
+data's ``scene.json`` declares: exact on data it rendered; what knowing the lens is worth; absent
+for photographs, whose aperture is unknown).
 """
 
 from __future__ import annotations
@@ -114,23 +115,33 @@ def _metrics(pred: torch.Tensor, target: torch.Tensor) -> tuple[float, float]:
     return float(psnr(a, b, 1.0)), float(ssim(a, b, 11).mean())
 
 
+def oracle_apertures(ds: FocalStackDataset) -> list[ApertureModel] | None:
+    """Each held-out scene's declared aperture (``scene.json``), or None when any scene declares
+    none (photographs, light fields: the lens is what is being learned, so there is no oracle)."""
+    declared = [m["aperture"] for m in ds.metas]
+    return None if any(a is None for a in declared) else [ApertureModel.from_dict(a) for a in declared]
+
+
 @torch.no_grad()
 def held_out_baselines(ds: FocalStackDataset, samples: _Samples | None = None,
                        device: torch.device | None = None) -> dict[str, float]:
-    """Mean PSNR/SSIM (``identity_*``, ``gaussian_*``, ``oracle_*``) of the three baselines on a
+    """Mean PSNR/SSIM (``identity_*``, ``gaussian_*``, ``oracle_*``) of the baselines on a
     held-out split, in the training metric: the AIF unchanged, the CoC-driven Gaussian scatter and
-    the scatter with each scene's own aperture (``scene.json``), all fed the held-out AIF + CoC."""
+    the scatter with each scene's own aperture (``scene.json``), all fed the held-out AIF + CoC.
+    The ``oracle_*`` keys are left out when a scene declares no aperture (:func:`oracle_apertures`)."""
     samples = samples or _Samples(ds, cache=False)
     device = device or torch.device("cpu")
     norm, scale = ds.normalization, ds.coc_scale_px
     gauss = ApertureModel(Gaussian(0.5))
-    sums = {k: 0.0 for k in ("identity_psnr", "identity_ssim", "gaussian_psnr", "gaussian_ssim", "oracle_psnr", "oracle_ssim")}
+    exact = oracle_apertures(ds)
+    names = ("identity", "gaussian") + (("oracle",) if exact else ())
+    sums = {f"{n}_{m}": 0.0 for n in names for m in ("psnr", "ssim")}
     for i in range(len(ds)):
         x, y, _ = samples.batch([i], device)
-        exact = ApertureModel.from_dict(ds.metas[ds.items[i][0]]["aperture"])
         linear, coc = norm.decode(x[:, :3].double()), x[:, 3:].double() * scale
-        preds = {"identity": x[:, :3], "gaussian": norm.encode(scatter_defocus(linear, coc, gauss)).float(),
-                 "oracle": norm.encode(scatter_defocus(linear, coc, exact)).float()}
+        preds = {"identity": x[:, :3], "gaussian": norm.encode(scatter_defocus(linear, coc, gauss)).float()}
+        if exact:
+            preds["oracle"] = norm.encode(scatter_defocus(linear, coc, exact[ds.items[i][0]])).float()
         for name, pred in preds.items():
             p, s = _metrics(pred, y)
             sums[f"{name}_psnr"] += p
@@ -225,6 +236,10 @@ def _train(
     if held and not resume and not overwrite:
         raise ValueError(f"train.out_dir {out_dir} already holds a run ({', '.join(held)}): continue it with --resume "
                          f"{out_dir / 'checkpoint.pt'}, choose another train.out_dir, or start afresh with --overwrite")
+    if held and resume and Path(resume).resolve().parent != out_dir.resolve() and not overwrite:
+        raise ValueError(f"--resume {resume} is another run's checkpoint, and train.out_dir {out_dir} holds a run of its "
+                         f"own ({', '.join(held)}): set train.out_dir={Path(resume).parent} to continue that run there, "
+                         "choose an empty train.out_dir, or replace this one with --overwrite")
     require_sound(cfg.data.roots)
 
     norm = Normalization(cfg.data.normalization_scale)
