@@ -14,6 +14,7 @@ import sys
 
 from neuralbokeh.core.cli import HelpFormatter, run_cli
 from neuralbokeh.core.io import prepare_output
+from neuralbokeh.core.optics import SensorWindow
 from neuralbokeh.export.exporter import export_checkpoint
 from neuralbokeh.export.lens_graph import LENS_DEFAULT_KERNELS
 from neuralbokeh.export.lowrank import DEFAULT_KERNELS
@@ -36,13 +37,25 @@ def main(argv: list[str] | None = None) -> int:
                         f"EPS / sqrt(#convolutions); default {DEFAULT_KERNELS})")
     p.add_argument("--tolerance", type=float, help="max abs parity error, normalised units (default 1e-4; 2e-2 with --fp16)")
     p.add_argument("--threads", type=int, default=None, help="onnxruntime threads for the parity check")
+    p.add_argument("--size", type=int, nargs=2, metavar=("W", "H"),
+                   help="lens network: the plate format the file renders, in px (default: the trained size)")
+    p.add_argument("--sensor-window", type=float, nargs=4, metavar=("LEFT", "TOP", "WIDTH", "HEIGHT"),
+                   help="lens network: the plate's part of the sensor, fractions of its width and height (default 0 0 1 1)")
+    p.add_argument("--max-coc", type=float, metavar="PX",
+                   help="lens network: the largest |CoC| the file renders, px (default: the trained maximum; beyond it the "
+                        "learned pupil is scaled)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     p.add_argument("-v", "--verbose", action="store_true", help="info logging, and tracebacks with errors")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     try:
         prepare_output(args.out, args.overwrite)  # before minutes of export and parity checks
-        report = export_checkpoint(args.checkpoint, args.out, args.opset, args.fp16, args.kernels, args.tolerance, args.threads)
+        if args.size and min(args.size) < 1:
+            raise ValueError(f"--size must be W H in px >= 1, got {args.size[0]} {args.size[1]}")
+        report = export_checkpoint(args.checkpoint, args.out, args.opset, args.fp16, args.kernels, args.tolerance, args.threads,
+                                   size=(args.size[1], args.size[0]) if args.size else None,
+                                   window=SensorWindow(*args.sensor_window) if args.sensor_window else None,
+                                   max_coc_px=args.max_coc)
     except (FileNotFoundError, FileExistsError, PermissionError, ValueError) as e:
         raise SystemExit(f"error: {e}")
     meta = report["metadata"]

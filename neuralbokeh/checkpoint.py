@@ -3,7 +3,7 @@
 A checkpoint stores the model config and the data contract (:class:`~neuralbokeh.core.contract.Contract`:
 image size, normalisation, CoC scale, largest CoC, lens, aperture) next to the weights, so
 ``load_model(path)`` needs no other input. Files are written atomically (``core.io.atomic_write``).
-Version 1 files (loose contract keys) are read and upgraded in memory.
+Older formats are refused with a one-line reason (no user holds one).
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from .core.io import atomic_write
 from .networks import ModelConfig, build_model
 
 FORMAT = "neuralbokeh-checkpoint"
-FORMAT_VERSION = 2  # 2: the data contract under "contract" (1: loose keys, read and upgraded)
+FORMAT_VERSION = 3  # 3: the lens network's pupils on a field grid over the sensor (any image size)
 
 
 def save_checkpoint(path: str | os.PathLike, payload: dict[str, Any]) -> Path:
@@ -56,12 +56,10 @@ def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = 
     if not isinstance(data, dict) or data.get("format") != FORMAT:
         raise ValueError(f"{path} is not a neuralbokeh checkpoint")
     version = data.get("format_version")
-    if version == 1:  # the contract as loose keys beside a model config holding the image size
-        data["contract"] = Contract.from_legacy(data, data["model_config"]).to_dict()
-        data["model_config"] = ModelConfig.from_dict(data["model_config"]).to_dict()  # one form, e.g. for resume
-        data["format_version"] = FORMAT_VERSION
-    elif version != FORMAT_VERSION:
-        raise ValueError(f"{path}: checkpoint format_version {version} is not supported (1..{FORMAT_VERSION})")
+    if version != FORMAT_VERSION:
+        hint = " (written before networks of any image size: retrain it)" if isinstance(version, int) and version < 3 else ""
+        raise ValueError(f"{path}: checkpoint format_version {version!r} is not supported (this neuralbokeh reads "
+                         f"{FORMAT_VERSION}){hint}")
     return data
 
 

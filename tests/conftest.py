@@ -89,7 +89,7 @@ def busy(path: Path, out: Path, seed: int = 11) -> Path:
     for name, t in state.items():
         if name.startswith("c2.") or ".conv_b." in name:
             state[name] = 0.3 * torch.randn(t.shape, generator=g, dtype=t.dtype) / max(1, t[0].numel()) ** 0.5
-        elif name == "pupil_tile":
+        elif name == "pupil_field":
             state[name] = t + 1.5 * torch.randn(t.shape, generator=g, dtype=t.dtype)
         elif name == "log_channel_scale":
             state[name] = torch.tensor([0.05, 0.0, -0.08], dtype=t.dtype)

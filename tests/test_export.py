@@ -70,8 +70,13 @@ def test_export_direct_matches_pytorch_and_carries_metadata(busy_checkpoint, tmp
     assert max(report["parity"].values()) <= 1e-4
     model, ckpt = load_model(busy_checkpoint)
     meta = json.loads({p.key: p.value for p in onnx.load(out).metadata_props}["neuralbokeh"])
-    assert meta["model_config"] == ckpt["model_config"] and meta["contract"] == ckpt["contract"]
-    assert meta["format_version"] == 2 and meta["layout"] == list(model.layout) and meta["package_version"]
+    # exported at the trained size and range: the trained model's own plan (band lattice, scale)
+    assert meta["model_config"] == ckpt["model_config"]
+    assert meta["contract"]["coc_scale_px"] == pytest.approx(ckpt["contract"]["coc_scale_px"], rel=1e-12)
+    assert {k: v for k, v in meta["contract"].items() if not k.endswith("coc_px")} == \
+        {k: v for k, v in ckpt["contract"].items() if not k.endswith("coc_px")}
+    assert meta["format_version"] == 2 and meta["layout"] == list(model.layout(*model.contract.size)) and meta["package_version"]
+    assert meta["sensor_window"] == {"left": 0.0, "top": 0.0, "width": 1.0, "height": 1.0}
     # independent check on fresh inputs, batch of 3 (dynamic batch)
     x = calibration_inputs(*model.contract.size, count=3, seed=5)
     got = _run_onnx(out, x[:, :3].numpy(), x[:, 3:].numpy())
@@ -250,26 +255,21 @@ def test_rows_export_is_the_direct_export(busy_checkpoint, tmp_path):
     assert max(half["parity"].values()) <= 2e-2
 
 
-def test_files_of_format_1_are_read_and_upgraded(busy_checkpoint, busy_onnx, tmp_path):
-    """Checkpoints and ONNX files written before the data contract (loose keys, data fields in the
-    model config) load to the same contract and the same outputs."""
+def test_old_checkpoints_are_refused_and_old_onnx_files_still_run(busy_checkpoint, busy_onnx, tmp_path):
+    """A checkpoint of a format before networks of any size is refused in one line (no user has
+    one); an ONNX file of format 1 (loose keys) still loads to the same contract and outputs."""
     from neuralbokeh.runtime import OnnxBokeh
 
     model, ckpt = load_model(busy_checkpoint)
+    torch.save({**ckpt, "format_version": 2}, tmp_path / "v2.pt")
+    with pytest.raises(ValueError, match="format_version 2 is not supported.*retrain"):
+        load_model(tmp_path / "v2.pt")
     c = ckpt["contract"]
     legacy_cfg = {**ckpt["model_config"], "image_height": c["image_size"]["height"], "image_width": c["image_size"]["width"],
                   "coc_scale_px": c["coc_scale_px"], "norm_scale": c["normalization"]["scale"],
                   "norm_offset": c["normalization"]["offset"], "init_aperture": None}
     legacy_cfg["kernels"] = legacy_cfg.pop("kernel_sizes")
     loose = {k: c[k] for k in ("normalization", "coc_scale_px", "max_coc_px", "lens", "aperture")}
-    old = {k: v for k, v in ckpt.items() if k != "contract"} | {"format_version": 1, "model_config": legacy_cfg} | loose
-    torch.save(old, tmp_path / "v1.pt")
-    again, upgraded = load_model(tmp_path / "v1.pt")
-    assert again.contract == model.contract and upgraded["contract"] == c
-    assert upgraded["model_config"] == ckpt["model_config"]  # upgraded too: a format-1 run can be resumed
-    x = calibration_inputs(*model.contract.size, count=1, seed=2)
-    with torch.no_grad():
-        assert torch.equal(again(x), model(x))
 
     proto = onnx.load(busy_onnx)
     meta = json.loads(proto.metadata_props[0].value)

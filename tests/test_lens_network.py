@@ -177,13 +177,86 @@ def test_trains_towards_a_lens_it_was_not_started_from(tmp_path):
     assert np.isfinite(losses).all() and losses[-1] < 0.6 * losses[0], losses
 
 
-def test_tile_corrections_learn_slower_than_the_lens_wide_pupil():
+def test_field_corrections_learn_slower_than_the_lens_wide_pupil():
     from neuralbokeh.training.loop import param_groups
 
     m = _model()
     scale = {id(p): g["lr_scale"] for g in param_groups(m, "fan_in", 0.25) for p in g["params"]}
-    assert scale[id(m.pupil_tile)] == 0.25 and scale[id(m.pupil_shared)] == 1.0
-    assert float(m.pupil_tile.abs().max()) == 0.0  # every tile starts as the lens-wide pupil
+    assert scale[id(m.pupil_field)] == 0.25 and scale[id(m.pupil_shared)] == 1.0
+    assert float(m.pupil_field.detach().abs().max()) == 0.0  # the whole field starts as the lens-wide pupil
+
+
+def _busy(m, seed=5):
+    g = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        m.pupil_shared.add_(torch.randn(m.pupil_shared.shape, generator=g))
+        m.pupil_field.add_(1.5 * torch.randn(m.pupil_field.shape, generator=g))
+    return m
+
+
+def _scene(h, w, seed=2, coc=None):
+    g = torch.Generator().manual_seed(seed)
+    img = 0.18 * torch.exp2(4 * torch.rand(1, 3, h, w, generator=g, dtype=torch.float64) - 2)
+    img[..., 3::11, 5::13] = 40.0
+    c = torch.full((1, 1, h, w), 9.0, dtype=torch.float64) if coc is None else coc
+    return torch.cat([NORM.encode(img), c / C_MAX], 1).float()
+
+
+def test_a_crop_with_its_window_renders_as_the_whole_frame_does():
+    """Pupils come from the sensor position, not a tile index: a crop told where it lies on the
+    sensor renders its interior as the whole frame does, for any field of pupils when its tiles
+    fall where the frame's do, and within a tile's field variation when they do not."""
+    whole = _scene(96, 120)
+    for (r0, c0, h, w), field_grid, tol in (((24, 48, 48, 72), 5, 2e-5), ((24, 40, 48, 64), 1, 2e-5)):
+        m = _busy(_model(tile=24, overlap=8, field_grid=field_grid))
+        crop = whole[..., r0 : r0 + h, c0 : c0 + w]
+        window = torch.tensor([[c0 / 120, r0 / 96, w / 120, h / 96]])
+        with torch.no_grad():
+            a = m(whole)[..., r0 + 8 : r0 + h - 8, c0 + 8 : c0 + w - 8]
+            b = m(crop, window)[..., 8:-8, 8:-8]
+            wrong = m(crop)[..., 8:-8, 8:-8]  # the crop taken for the whole sensor
+        assert torch.allclose(a, b, atol=tol), (field_grid, float((a - b).abs().max()))
+        if field_grid > 1:
+            assert float((a - wrong).abs().max()) > 1e-2  # without its window the crop gets other pupils
+
+
+def test_pupils_follow_the_sensor_position():
+    m = _busy(_model(field_grid=2))
+    layout = m.layout(48, 48)
+    left = m.tile_pupils(layout, 48, 48, torch.tensor([[0.0, 0.0, 0.5, 1.0]]))[0]
+    right = m.tile_pupils(layout, 48, 48, torch.tensor([[0.5, 0.0, 0.5, 1.0]]))[0]
+    whole = m.tile_pupils(m.layout(48, 96), 48, 96)[0]  # 2 x 4 tiles; columns 0-1 left, 2-3 right
+    assert torch.allclose(left, whole[[0, 1, 4, 5]], atol=1e-6) and torch.allclose(right, whole[[2, 3, 6, 7]], atol=1e-6)
+    assert float((left - right).abs().max()) > 0.1
+
+
+def test_a_frame_plans_the_bands_it_needs_and_skipping_stays_exact():
+    m = _busy(_model())
+    coc = torch.full((1, 1, 48, 48), C_MAX / 3, dtype=torch.float64)
+    coc[..., 10:30, 12:28] = -C_MAX / 4  # a blurred foreground over a blurred background: the fill counts too
+    x = _scene(48, 48, coc=coc)
+    with torch.no_grad():
+        own = m(x)
+        n_own = m.last_convolutions
+        planned_full = m(x, plan_coc_px=C_MAX)
+        n_full = m.last_convolutions
+    assert m.plan(C_MAX / 3)[0] == 2 and m.plan(C_MAX)[0] == 6  # bands 1..2 of the lattice d_n = 1 + 2n
+    assert n_own == n_full  # the same bands run: the lattice is the frame's, not the plan's
+    assert torch.allclose(own, planned_full, atol=1e-6)
+
+
+def test_a_coc_twice_the_trained_maximum_is_the_pupil_scaled():
+    m = _model()
+    d = 2 * C_MAX + 1  # band 13 of the lattice, beyond the 6 trained ones
+    img = torch.zeros(1, 3, 80, 80, dtype=torch.float64)
+    img[..., 40, 41] = 1000.0
+    coc = torch.full((1, 1, 80, 80), d, dtype=torch.float64)
+    m = build_model(ModelConfig(blocks=6, tile=40, overlap=20, pupil_init="disk"), Contract(80, 80, NORM, C_MAX, C_MAX)).eval()
+    out = _run(m, img, coc)[0, 1] - NORM.decode(NORM.encode(torch.zeros(())))
+    ref = scatter_defocus(img, coc, ApertureModel(Disk()))[0, 1]
+    assert m.plan(d)[0] == 13
+    assert float(out.sum()) == pytest.approx(1000.0, rel=1e-3)  # flux kept
+    assert float((out - ref).abs().sum()) < 0.05 * 1000.0  # the disk at its own diameter
 
 
 def test_what_a_blurred_foreground_uncovers_is_the_background_not_the_foreground():

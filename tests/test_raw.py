@@ -14,7 +14,7 @@ from data_tools.raw.decode import RawDecodeError, decode, read_metadata, white_b
 from data_tools.raw.synthetic import BLACK, WHITE, make_stack, mosaic, write_dng
 from neuralbokeh.data.dataset import FocalStackDataset, load_scene
 from neuralbokeh.core.io import read_image
-from neuralbokeh.core.optics import ThinLens
+from neuralbokeh.core.optics import SensorWindow, ThinLens
 
 LENS = ThinLens(50.0, 1.8, 12.0)
 
@@ -76,9 +76,14 @@ def test_stack_becomes_a_dataset_with_accurate_aif_depth_and_alignment(stack):
     got = [a["scale"] for a in g["alignment"]]
     np.testing.assert_allclose(got, truth["magnification"], atol=0.004)
     assert max(a["residual_px"] for a in g["alignment"]) < 1.0
-    # CoC maps follow the scene's lens and depth; the loader takes the scene as it is
+    # CoC maps follow the camera's lens, the crop's window on its sensor and the depth; the loader
+    # takes the scene as it is
     lens = ThinLens.from_dict(scene["meta"]["lens"])
-    coc0 = lens.coc_px(scene["depth"].astype(np.float64), scene["meta"]["focus_distances_m"][0], aif.shape[1], signed=True)
+    assert lens == LENS  # the whole sensor: the crop is the window, not another lens
+    window = SensorWindow.from_dict(scene["meta"]["sensor_window"])
+    assert window.width < 1.0  # the breathing slices were cropped to their common area
+    coc0 = lens.coc_px(scene["depth"].astype(np.float64), scene["meta"]["focus_distances_m"][0], aif.shape[1], signed=True,
+                       window=window)
     np.testing.assert_allclose(scene["coc"][0], coc0, rtol=1e-5, atol=1e-4)
     assert len(FocalStackDataset(root / "ds", "all")) == 5
     report = {"aif_psnr_db": fused, "best_slice_psnr_db": best_slice, "depth_median_err_diopter_textured": float(np.median(err[textured])),

@@ -140,16 +140,19 @@ def test_active_bands_hold_every_band_the_network_uses(busy_onnx, busy_checkpoin
     m = OnnxBokeh(busy_onnx, threads=1)
     model, _ = load_model(busy_checkpoint)
     cfg = model.config
-    d = band_diameters(model.c_max, cfg.blocks)
+    c_max = float(model.contract.coc_scale_px)
+    layout = model.layout(m.height, m.width)
+    d = band_diameters(c_max, cfg.blocks)
     g = np.random.default_rng(8)
     levels = np.concatenate([d, (d[1:] + d[:-1]) / 2, d + 1e-7, d - 1e-7, [0.0, 0.5]])
     coc = g.choice(levels, (2, m.height, m.width)) * g.choice([-1.0, 1.0], (2, m.height, m.width))
     flags = m.active_bands(coc)
-    c = tile(torch.from_numpy(coc[:, None] / model.c_max).float(), model.layout) * model.c_max  # (B, T, win, win)
-    pos = band_position(c, model.c_max, cfg.blocks)
+    c = tile(torch.from_numpy(coc[:, None] / c_max).float(), layout) * c_max  # (B, T, win, win)
+    pos = band_position(c, c_max, cfg.blocks)
+    src = model.source_masks(layout, c.device, c.dtype)
     for n in range(1, cfg.blocks + 1):
         for side, sel in enumerate((c > 0, c < 0)):
-            used = ((_gate(pos, n) * sel * model.source_mask[None, :, 0]).flatten(2).amax(-1) > 0).any(0).numpy()
+            used = ((_gate(pos, n) * sel * src[None, :, 0]).flatten(2).amax(-1) > 0).any(0).numpy()
             assert not (used & ~flags[:, n - 1, side]).any(), (n, side)
     one = m.active_bands(np.full((1, m.height, m.width), (d[2] + d[3]) / 2))  # between bands 2 and 3, behind
     assert one[:, [1, 2], 0].all() and one.sum() == 2 * m.num_tiles  # and nothing else

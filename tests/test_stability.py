@@ -3,7 +3,9 @@
 Cases (``probe_inputs``): random, everything in focus, everything at the maximum CoC (both
 signs), a one-pixel depth edge from in focus to the maximum CoC, 1e4 highlights; models:
 a busy 40x32 network (6 tiles), one smaller than one tile and one of odd size, each for the
-default (lens) architecture and the paper's. Depth = inf and
+default (lens) architecture and the paper's; and the lens network exported for plates it was
+not trained at (a crop at the sensor's corner of odd size, a CoC twice the trained maximum, a
+larger frame). Depth = inf and
 NaN/inf inputs are covered through the runtime in ``test_runtime.py`` and below.
 """
 
@@ -11,12 +13,12 @@ import numpy as np
 import pytest
 import torch
 
-from neuralbokeh.export.exporter import export_checkpoint, probe_inputs, run_session
+from neuralbokeh.export.exporter import export_checkpoint, plate_model, probe_inputs, run_session
 from neuralbokeh.runtime.onnx_model import make_session as session
 from neuralbokeh.networks import ModelConfig, build_model
 from neuralbokeh.core.contract import Contract
 from neuralbokeh.core.normalization import Normalization
-from neuralbokeh.core.optics import ThinLens
+from neuralbokeh.core.optics import SensorWindow, ThinLens
 from neuralbokeh.checkpoint import load_model
 from neuralbokeh.checkpoint import save_checkpoint
 
@@ -32,7 +34,7 @@ def _random_checkpoint(path, height, width, architecture, blocks=3):
         for name, p in model.named_parameters():
             if name.startswith("c2.") or ".conv_b." in name:
                 p.copy_(0.3 * torch.randn_like(p) / max(1, p[0].numel()) ** 0.5)
-            elif name == "pupil_tile":
+            elif name == "pupil_field":
                 p.add_(1.5 * torch.randn_like(p))
     save_checkpoint(path, {"model_config": cfg.to_dict(), "model_state": model.state_dict(),
                            "contract": contract.to_dict(), "step": 0})
@@ -82,3 +84,31 @@ def test_pytorch_model_refuses_nan_and_inf_inputs(busy_checkpoint):
         x[0, 1, 3, 5] = bad
         with pytest.raises(ValueError, match=r"model input must be finite, got (nan|inf) at pixel \(3, 5\)"):
             model(x)
+
+
+@pytest.mark.parametrize("case, size, window, coc_factor", [
+    ("corner_crop_odd_29x19", (19, 29), SensorWindow(0.75, 0.8, 0.25, 0.2), 1.0),
+    ("coc_2x_trained", None, None, 2.0),
+    ("larger_plate_64x48", (48, 64), None, 1.0),
+])
+@pytest.mark.parametrize("fp16", [False, True], ids=["fp32", "fp16"])
+def test_plate_exports_are_finite_bounded_and_within_parity(busy_checkpoint, case, size, window, coc_factor, fp16, tmp_path):
+    """The learned lens exported for plates it was not trained at: a crop at the sensor's corner of
+    odd size, a CoC twice the trained maximum, a larger frame; the runtime against the PyTorch
+    model of the same plate on the extreme probes."""
+    trained, ckpt = load_model(busy_checkpoint)
+    max_coc = coc_factor * ckpt["contract"]["max_coc_px"]
+    report = export_checkpoint(busy_checkpoint, tmp_path / "p.onnx", fp16=fp16, kernels="direct", threads=1, size=size,
+                               window=window, max_coc_px=max_coc)
+    model = plate_model(trained, size, max_coc)
+    assert model.contract.max_coc_px >= max_coc and report["metadata"]["contract"] == model.contract.to_dict()
+    w = window or SensorWindow()
+    wt = torch.tensor([[w.left, w.top, w.width, w.height]])
+    sess = session(str(tmp_path / "p.onnx"), threads=1)
+    for name, (aif, coc) in probe_inputs(*model.contract.size).items():
+        with torch.no_grad():
+            ref = model(torch.from_numpy(np.concatenate([aif, coc], axis=1)), wt, plan_coc_px=model.contract.max_coc_px).numpy()
+        got = run_session(sess, aif, coc)
+        for out in (ref, got):
+            assert np.isfinite(out).all() and np.abs(out).max() < 1.0, name
+        assert np.abs(got - ref).max() <= TOLERANCE[fp16], (case, name)

@@ -11,6 +11,7 @@ import torch
 from neuralbokeh.checkpoint import load_model
 from neuralbokeh.core.contract import Contract
 from neuralbokeh.core.normalization import Normalization
+from neuralbokeh.data.dataset import FocalStackDataset
 from neuralbokeh.networks.config import ModelConfig
 from neuralbokeh.training import load_config, train
 from neuralbokeh.training import loop as loop_module
@@ -154,13 +155,42 @@ def test_resume_refuses_to_write_into_another_run(tiny_dataset, tmp_path):
     assert forked["steps"] == 4
 
 
+def test_crops_of_scenes_of_mixed_sizes_train_and_evaluate_on_whole_frames(tiny_dataset, tmp_path):
+    """Scenes of two sizes in one dataset train on random 24x32 crops (each with its sensor window);
+    held-out evaluation runs on the whole frames; a resumed run cuts the same crops."""
+    from data_tools.synth import main as synth
+
+    other = tmp_path / "other"
+    assert synth(["--out", str(other), "--scenes", "3", "--size", "48", "36", "--slices", "3",
+                  "--aperture", "polygon:7", "--cat-eye", "0.5", "--seed", "9"]) == 0
+    roots = [f"'{tiny_dataset}'", f"'{other}'"]
+
+    def config(name, *extra):
+        _config(tmp_path / name, tiny_dataset)  # writes its cfg.toml
+        return load_config(tmp_path / name / "cfg.toml", [f"data.roots=[{', '.join(roots)}]", *extra])
+
+    with pytest.raises(ValueError, match="must share 'image_size'"):  # whole scenes of two sizes: refused, named
+        train(config("whole"), progress=False)
+    straight = train(config("a", "data.crop=[24, 32]"), progress=False)
+    model, ck = load_model(straight["checkpoint"])
+    assert model.contract.size == (24, 32)  # the crop: what the weights were fitted on
+    sizes = {tuple(FocalStackDataset(r.strip("'"), "all")[0]["aif"].shape[-2:]) for r in roots}
+    assert sizes == {(32, 40), (36, 48)}
+    assert straight["metrics"]["eval_psnr"] > straight["metrics"]["identity_psnr"]  # whole held-out frames
+    first = train(config("b", "data.crop=[24, 32]"), progress=False, stop_at=2)
+    resumed = train(config("b", "data.crop=[24, 32]"), resume=first["checkpoint"], progress=False)
+    b = torch.load(resumed["checkpoint"], weights_only=False)
+    for key, value in ck["model_state"].items():
+        assert torch.equal(value, b["model_state"][key]), key
+
+
 def test_non_finite_steps_are_skipped_then_abort(tiny_dataset, tmp_path, monkeypatch):
     real = loop_module.compute_loss
     calls = {"n": 0}
 
-    def nan_on_steps_2_and_3(model, x, y, kind):
+    def nan_on_steps_2_and_3(model, x, y, kind, window=None):
         calls["n"] += 1
-        loss = real(model, x, y, kind)
+        loss = real(model, x, y, kind, window)
         return loss * float("nan") if calls["n"] in (2, 3) else loss
 
     monkeypatch.setattr(loop_module, "compute_loss", nan_on_steps_2_and_3)
@@ -169,7 +199,7 @@ def test_non_finite_steps_are_skipped_then_abort(tiny_dataset, tmp_path, monkeyp
     log = (tmp_path / "a" / "run" / "log.csv").read_text().splitlines()
     assert [r.split(",")[3] for r in log[1:]] == ["0", "1", "2", "2", "2"]
 
-    monkeypatch.setattr(loop_module, "compute_loss", lambda m, x, y, k: real(m, x, y, k) * float("inf"))
+    monkeypatch.setattr(loop_module, "compute_loss", lambda m, x, y, k, w=None: real(m, x, y, k, w) * float("inf"))
     with pytest.raises(RuntimeError, match=r"3 non-finite steps in a row, the last at step 3 \(batch scenes on rank 0: scene_000"):
         train(_config(tmp_path / "b", tiny_dataset, steps=5, max_nonfinite=3), progress=False)
 

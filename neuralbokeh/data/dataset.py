@@ -243,7 +243,8 @@ class FocalStackDataset(torch.utils.data.Dataset):
         normalize: if False, return linear colours and CoC in px.
 
     Each item is a dict: ``aif (3, H, W)``, ``coc (1, H, W)``, ``defocus (3, H, W)`` float32
-    tensors (normalised unless ``normalize=False``), ``scene`` (folder name), ``slice`` (index)
+    tensors (normalised unless ``normalize=False``), ``window (4,)`` (the image's part of the
+    sensor: left, top, width, height in fractions), ``scene`` (folder name), ``slice`` (index)
     and ``focus_m``.
 
     Raises:
@@ -287,10 +288,29 @@ class FocalStackDataset(torch.utils.data.Dataset):
             raise ValueError(f"all scenes of one model must share {key!r}; found {len(values)} different ones: {sorted(values)}")
         return self.metas[0][key]
 
-    def contract(self) -> Contract:
-        """The data contract a model trained on this split keeps (:class:`Contract`)."""
-        size, lens = self.shared("image_size"), self.shared("lens")
-        return Contract(int(size["height"]), int(size["width"]), self.normalization, self.coc_scale_px, self.max_coc_px,
+    def contract(self, crop: Sequence[int] | None = None) -> Contract:
+        """The data contract a model trained on this split keeps (:class:`Contract`).
+
+        ``crop`` ``(height, width)`` px: a model trained on crops of this size (the scenes may
+        differ in size, each at least this big); else every scene must share one image size.
+        Every scene must share one lens (on its whole sensor) and aperture.
+
+        Raises:
+            ValueError: scenes that differ in lens, aperture or (without ``crop``) size, or a
+                scene smaller than ``crop`` (named).
+        """
+        lens = self.shared("lens")
+        if crop:
+            height, width = (int(v) for v in crop)
+            small = [f"{p.name} ({m['image_size']['width']}x{m['image_size']['height']})" for p, m in zip(self.scenes, self.metas)
+                     if m["image_size"]["height"] < height or m["image_size"]["width"] < width]
+            if small:
+                raise ValueError(f"scenes smaller than the {width}x{height} px training crop: {', '.join(small)}; "
+                                 "lower data.crop")
+        else:
+            size = self.shared("image_size")
+            height, width = int(size["height"]), int(size["width"])
+        return Contract(height, width, self.normalization, self.coc_scale_px, self.max_coc_px,
                         ThinLens.from_dict(lens) if lens else None, self.shared("aperture"))
 
     def __getitem__(self, index: int) -> dict[str, Any]:
@@ -315,10 +335,12 @@ class FocalStackDataset(torch.utils.data.Dataset):
         def chw(a: np.ndarray) -> torch.Tensor:
             return torch.from_numpy(np.ascontiguousarray(a.transpose(2, 0, 1), dtype=np.float32))
 
+        window = SensorWindow.from_dict(meta.get("sensor_window"))
         return {
             "aif": chw(aif),
             "coc": chw(coc),
             "defocus": chw(defocus),
+            "window": torch.tensor([window.left, window.top, window.width, window.height], dtype=torch.float32),
             "scene": folder.name,
             "slice": k,
             "focus_m": float(sl["focus_m"]),

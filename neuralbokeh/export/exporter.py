@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 import logging
 import os
@@ -18,7 +19,8 @@ from .. import __version__
 from ..checkpoint import load_model
 from ..core.io import atomic_write
 from ..core.normalization import Normalization
-from ..networks.lens import band_scales, reduce_kernel
+from ..core.optics import SensorWindow
+from ..networks.lens import LensBokeh, band_plan, band_scales, reduce_kernel
 from ..networks.paper import PaperBokeh
 from ..runtime.onnx_model import FORMAT, FORMAT_VERSION, METADATA_KEY, make_session
 from .graph import build_graph
@@ -158,6 +160,22 @@ def run_session(sess: ort.InferenceSession, aif: np.ndarray, coc: np.ndarray,
     return sess.run(["defocus"], feeds)[0]
 
 
+def plate_model(model: LensBokeh, size: tuple[int, int] | None = None, max_coc_px: float | None = None) -> LensBokeh:
+    """The lens network as an export for one plate format sees it: the same weights, a contract
+    of the plate's ``size`` ``(H, W)`` px (default: the trained one) whose CoC scale and largest
+    CoC are the last band centre of the plan for ``max_coc_px`` (default: the trained maximum;
+    larger renders CoCs beyond it, through the scaled pupil), and N = that plan's bands."""
+    if max_coc_px is not None and not (np.isfinite(max_coc_px) and max_coc_px > 0):
+        raise ValueError(f"max_coc_px must be a finite number of px > 0, got {max_coc_px!r}")
+    height, width = size or model.contract.size
+    n, c_plan = band_plan(float(max_coc_px if max_coc_px is not None else model.contract.max_coc_px), model.step_px)
+    contract = dataclasses.replace(model.contract, image_height=int(height), image_width=int(width),
+                                   coc_scale_px=max(c_plan, 1.0), max_coc_px=c_plan)
+    plate = LensBokeh(dataclasses.replace(model.config, blocks=n), contract)
+    plate.load_state_dict(model.state_dict())
+    return plate.eval()
+
+
 def export_checkpoint(
     checkpoint: str | os.PathLike,
     out: str | os.PathLike,
@@ -166,6 +184,9 @@ def export_checkpoint(
     kernels: str | None = None,
     tolerance: float | None = None,
     threads: int | None = None,
+    size: tuple[int, int] | None = None,
+    window: SensorWindow | None = None,
+    max_coc_px: float | None = None,
 ) -> dict[str, Any]:
     """Export a checkpoint to ONNX, check it against PyTorch, then move it into place.
 
@@ -182,6 +203,12 @@ def export_checkpoint(
             at least PX coarse pixels wide; default ``LENS_DEFAULT_KERNELS``).
         tolerance: max abs parity error in normalised units (default 1e-4 fp32, 2e-2 fp16).
         threads: onnxruntime threads for the parity run.
+        size: lens network: the plate format ``(H, W)`` px the file renders (default: the
+            trained size); the learned lens renders any size.
+        window: lens network: the plate's part of the sensor (default: all of it); it places
+            the tiles' pupils in the field and is the runtime's default window.
+        max_coc_px: lens network: the largest |CoC| (px) the file renders (default: the
+            trained maximum; beyond it the learned pupil is scaled).
 
     Returns:
         A report: ``parity`` (max abs error per probe case, against the PyTorch function
@@ -194,22 +221,32 @@ def export_checkpoint(
     """
     tolerance = DEFAULT_TOLERANCE[fp16] if tolerance is None else tolerance
     model, ckpt = load_model(checkpoint)
-    cfg = model.config
-    lens = cfg.architecture == "lens"
+    lens = model.config.architecture == "lens"
+    if not lens and (size or window or max_coc_px):
+        raise ValueError("size, window and max_coc_px need the lens network: the paper's network renders its trained "
+                         f"size {model.contract.size[1]}x{model.contract.size[0]} px only")
     opset = (18 if lens else 17) if opset is None else opset
+    window = window or SensorWindow()
+    window_t = torch.tensor([[window.left, window.top, window.width, window.height]])
     if lens:  # per-band kernels rasterised from the learned pupils, direct or on coarser grids
+        model = plate_model(model, size, max_coc_px)
         kernels = LENS_DEFAULT_KERNELS if kernels is None else kernels
         spec = parse_lens_kernels(kernels)
-        scales = band_scales(model.diameters, spec.min_px)
+        _, diameters = model.plan(model.contract.max_coc_px)
+        scales = band_scales(diameters, spec.min_px)
         factors = {}
-        kernel_report = {f"band{n}": {"k": cfg.kernel_size(n), "rank": 0, "scale": scales[n]} for n in range(1, cfg.blocks + 1)}
+        kernel_report = {f"band{n}": {"k": model.kernel_size(n), "rank": 0, "scale": scales[n]}
+                         for n in range(1, model.config.blocks + 1)}
     else:
         kernels = DEFAULT_KERNELS if kernels is None else kernels
         factors, kernel_report = plan_factors(model, kernels)
         weights = {k: v.detach().numpy() for k, v in model.state_dict().items()}
+    cfg = model.config
+    layout = cfg.layout(*model.contract.size)
     meta = {
         "format": FORMAT, "format_version": FORMAT_VERSION, "package_version": __version__,
-        "model_config": cfg.to_dict(), "contract": model.contract.to_dict(), "layout": list(model.layout),
+        "model_config": cfg.to_dict(), "contract": model.contract.to_dict(), "layout": list(layout),
+        "sensor_window": window.to_dict(), "trained_max_coc_px": float(ckpt["contract"]["max_coc_px"]),
         "kernels": kernels, "kernel_ranks": {k: v["rank"] for k, v in kernel_report.items()},
         "fp16": fp16, "opset": opset, "source_checkpoint": Path(checkpoint).name,
         "trained_steps": ckpt.get("step"),
@@ -219,8 +256,10 @@ def export_checkpoint(
     props = {METADATA_KEY: json.dumps(meta, sort_keys=True)}
     if lens:
         with torch.no_grad():
-            band_kernels = {n: reduce_kernel(model.kernels(n).double(), scales[n]).numpy() for n in range(1, cfg.blocks + 1)}
-        onnx_model = build_lens_graph(band_kernels, model.diameters, cfg, model.contract, fp16, opset, props, scales, spec.rows)
+            pupils = model.tile_pupils(layout, *model.contract.size, window_t)[0]
+            band_kernels = {n: reduce_kernel(model.kernels(n, pupils, float(diameters[n])).double(), scales[n]).numpy()
+                            for n in range(1, cfg.blocks + 1)}
+        onnx_model = build_lens_graph(band_kernels, diameters, cfg, model.contract, fp16, opset, props, scales, spec.rows)
     else:
         onnx_model = build_graph(weights, cfg, model.contract, factors, fp16, opset, props)
     sess = make_session(onnx_model.SerializeToString(), threads)
@@ -228,10 +267,14 @@ def export_checkpoint(
         approximate = any(s > 1 for s in scales.values())
 
         def reference(x: torch.Tensor) -> torch.Tensor:
-            return model(x, scales=scales)
+            return model(x, window_t, scales=scales, plan_coc_px=model.contract.max_coc_px)
+
+        def trained(x: torch.Tensor) -> torch.Tensor:
+            return model(x, window_t, plan_coc_px=model.contract.max_coc_px)
     else:
         approximate = bool(factors)
         reference = lowrank_reference(model, factors) if factors else model
+        trained = model
     parity, approx = {}, {}
     with torch.no_grad():
         for name, (aif, coc) in probe_inputs(*model.contract.size).items():
@@ -241,7 +284,7 @@ def export_checkpoint(
             if not np.isfinite(got).all():
                 raise ValueError(f"ONNX output is not finite on the {name!r} probe")
             parity[name] = float(np.abs(got - want).max())
-            approx[name] = float(np.abs(want - model(x).numpy()).max()) if approximate else 0.0
+            approx[name] = float(np.abs(want - trained(x).numpy()).max()) if approximate else 0.0
     worst = max(parity.values())
     log.info("parity (max abs, normalised): %s; low-rank approximation: %s", parity, approx)
     if worst > tolerance:

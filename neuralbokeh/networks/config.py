@@ -47,6 +47,8 @@ class ModelConfig:
         fft_min_kernel: kernel size from which per-channel convolutions use the FFT (no grad).
         fft_min_kernel_train: the same when gradients are computed.
         pupil_size: samples per side of each learned pupil grid (lens), >= 4.
+        field_grid: nodes per side of the grid over the sensor from which each tile's pupil
+            correction is interpolated at its position (lens), >= 1 (1: one pupil everywhere).
         pupil_init: the lens architecture's starting pupil: ``"disk"``, ``"gaussian"`` (the
             baseline's profile) or ``"aperture"`` (the data's aperture shape, from the contract).
         occlusion_margin_px: CoC difference (px) over which light changes from "same surface"
@@ -56,7 +58,7 @@ class ModelConfig:
             as the reference renderer's default) or ``"normalize"`` (divide by the coverage;
             checkpoints written before this option).
         (``features``, ``head`` and the FFT thresholds: paper only; ``pupil_*``,
-        ``occlusion_margin_px``, ``fill``: lens only; the rest: both.)
+        ``field_grid``, ``occlusion_margin_px``, ``fill``: lens only; the rest: both.)
     """
 
     architecture: str = "lens"
@@ -71,6 +73,7 @@ class ModelConfig:
     fft_min_kernel_train: int = 5
     pupil_size: int = 48
     pupil_init: str = "disk"
+    field_grid: int = 5
     occlusion_margin_px: float = 2.0
     fill: str = "background"
 
@@ -83,6 +86,8 @@ class ModelConfig:
             raise ValueError(f"model.blocks must be an integer >= 0 or 'auto', got {self.blocks!r}")
         if not isinstance(self.overlap, int) or self.overlap < 0 or 2 * self.overlap > self.tile:
             raise ValueError(f"model.overlap must be an integer with 0 <= 2 * overlap <= tile ({self.tile}), got {self.overlap!r}")
+        if isinstance(self.field_grid, bool) or not isinstance(self.field_grid, int) or self.field_grid < 1:
+            raise ValueError(f"model.field_grid must be an integer >= 1, got {self.field_grid!r}")
         if not isinstance(self.pupil_size, int) or self.pupil_size < 4:
             raise ValueError(f"model.pupil_size must be an integer >= 4, got {self.pupil_size!r}")
         m = self.occlusion_margin_px

@@ -10,19 +10,25 @@ The skeleton of the paper, given what a lens blur is made of:
    :class:`~neuralbokeh.core.normalization.Normalization`); the output is encoded back, which is the
    head's tanh (the normalisation *is* ``tanh(ln((x + o) / s) / 2)``). A blur is linear in
    linear light: a 1000x highlight spread over a disk stays bright.
-2. *Tiles with their own weights.* The image is cut into ``tile`` px cores with ``overlap`` px
-   of context (as the paper). Each tile owns a learned *pupil* per colour channel and per side
-   of the focus plane (in front, behind): a ``pupil_size``^2 grid of log-transmissions over
-   ``[-1.25, 1.25]^2`` aperture radii, the sum of a lens-wide pupil and the tile's own
-   correction (zero at the start; it learns at ``train.tile_lr_scale`` x lr, so a tile that few
-   training pixels reach cannot drift far from what the whole image teaches). This is where
+2. *Tiles with their own weights, from where they lie on the sensor.* The image is cut into
+   ``tile`` px cores with ``overlap`` px of context (as the paper). Each tile has a learned
+   *pupil* per colour channel and per side of the focus plane (in front, behind): a
+   ``pupil_size``^2 grid of log-transmissions over ``[-1.25, 1.25]^2`` aperture radii, the sum
+   of a lens-wide pupil and a field correction interpolated (bilinear) at the tile's sensor
+   position from ``field_grid``^2 nodes over the sensor (zero at the start; it learns at
+   ``train.field_lr_scale`` x lr, so a part of the field that few training pixels reach cannot
+   drift far from what the whole sensor teaches). A tile index means nothing: any frame size,
+   and any crop of the sensor (its ``window``), finds its pupils by position. This is where
    the lens is learned: the aperture shape, the cat-eye clipping of that part of the field, a
    bright rim or centre, per-channel differences. A learned per-channel scale of the CoC diameter models longitudinal chromatic
    aberration.
 3. *C1: the multiplicative CoC gate.* The signed CoC ``c`` (px) of each pixel is split into
    bands by hat functions of ``|c|``: band 0 is ``|c| <= 1`` px (in focus: a point), band
-   ``n = 1..N`` is centred at ``d_n = 1 + n (c_max - 1) / N`` px, so ``d_N = c_max`` and
-   ``d_n <= 2n + 1``. Features of band ``n`` = (colour x gate, gate), for each side.
+   ``n`` is centred at ``d_n = 1 + n step`` px, a lattice fixed by the training data (``step =
+   (c_max - 1) / N`` for its largest CoC ``c_max`` and N blocks, so ``d_n <= 2n + 1``). A frame
+   runs the bands up to the first whose centre reaches its own largest |CoC| (:func:`band_plan`):
+   a frame with a third of the range runs a third of the bands, one beyond the trained range
+   runs more, with the pupil scaled to their diameters. Features of band ``n`` = (colour x gate, gate), for each side.
 4. *Residual blocks R_1..R_N.* Block ``n`` scatters its band with per-channel kernels of size
    ``2n + 1`` (the paper's growing kernels, up to the largest CoC): the tile's pupil rasterised
    (anti-aliased, normalised to sum 1) at diameter ``d_n`` x the channel scale, point-reflected
@@ -68,6 +74,7 @@ from ..core.checks import check_finite
 from ..core.contract import Contract
 from ..ops.fftconv import next_fast_len
 from ..ops.holes import hidden_background
+from ..core.tiling import TileLayout
 from ..ops.tiles import tile
 from .config import ModelConfig
 
@@ -194,88 +201,164 @@ def _scatter(feats: torch.Tensor, kern: torch.Tensor, which: torch.Tensor, s: in
     return out
 
 
+def band_plan(coc_px: float, step_px: float) -> tuple[int, float]:
+    """Bands a frame whose largest |CoC| is ``coc_px`` needs on the lattice ``d_n = 1 + n step``:
+    ``(N, d_N)``, the fewest bands whose last centre reaches ``coc_px`` (0 bands up to 1 px)."""
+    if coc_px <= 1.0 or step_px <= 0:
+        return 0, 1.0
+    n = max(1, math.ceil((coc_px - 1.0) / step_px - 1e-6))
+    return n, 1.0 + n * step_px
+
+
+def field_positions(layout: TileLayout, height: int, width: int, window: torch.Tensor) -> torch.Tensor:
+    """The sensor position of each tile's core centre, ``(B, tiles, 2)`` as ``(x, y)`` in [-1, 1]
+    (the whole sensor's left/top edge at -1), for images of ``height x width`` px lying on the
+    sensor windows ``window`` ``(B, 4)`` = (left, top, width, height) in fractions of the sensor."""
+    centres = []
+    for k in range(layout.num_tiles):
+        r0, r1, c0, c1 = layout.source_region(k, height, width)
+        centres.append(((c0 + c1) / (2.0 * width), (r0 + r1) / (2.0 * height)))
+    c = torch.tensor(centres, dtype=window.dtype, device=window.device)  # (T, 2) fractions of the image
+    x = window[:, None, 0] + window[:, None, 2] * c[None, :, 0]
+    y = window[:, None, 1] + window[:, None, 3] * c[None, :, 1]
+    return torch.stack([x, y], dim=-1) * 2.0 - 1.0
+
+
 class LensBokeh(nn.Module):
-    """The default network (see the module doc). Built from a :class:`~neuralbokeh.networks.ModelConfig`."""
+    """The default network (see the module doc). Built from a :class:`~neuralbokeh.networks.ModelConfig`.
+
+    It renders any image size and any window of the sensor: the tile grid is laid over each
+    frame, each tile's pupil is the lens-wide pupil plus a correction interpolated from a
+    ``field_grid``^2 grid over the sensor at the tile's position, and the CoC bands lie on a
+    fixed lattice ``d_n = 1 + n step`` (px; ``step`` from the training data's CoC range and N),
+    of which a frame uses the bands its own largest |CoC| reaches, beyond the trained range too
+    (the pupil is scaled: it is defined in aperture radii).
+    """
 
     def __init__(self, config: ModelConfig, contract: Contract) -> None:
         super().__init__()
         config.check_resolved()
         self.config, self.contract = config, contract
         cfg = config
-        self.layout = layout = config.layout(*contract.size)
-        self.c_max = float(contract.coc_scale_px)
-        self.diameters = band_diameters(self.c_max, cfg.blocks)
+        c_train = max(float(contract.coc_scale_px), 1.0)
+        # the band lattice: N bands over the training range (d_N = c_train, d_n <= 2n + 1)
+        self.step_px = (c_train - 1.0) / cfg.blocks if cfg.blocks > 0 else 2.0
         prior = prior_transmission(_prior_shape(cfg, contract.aperture), cfg.pupil_size)
         logits = np.log(np.maximum(prior, PUPIL_FLOOR))
         # log-transmissions (side [behind, in front], channel, P, P): one lens-wide pupil, plus a
-        # per-tile correction (cat-eye clipping, field-dependent aberrations) that starts at zero
+        # field-dependent correction (cat-eye clipping, field aberrations) on a grid of nodes over
+        # the sensor, zero at the start
         init = np.broadcast_to(logits, (2, 3, cfg.pupil_size, cfg.pupil_size)).copy()
         self.pupil_shared = nn.Parameter(torch.from_numpy(init).float())
-        self.pupil_tile = nn.Parameter(torch.zeros(layout.num_tiles, 2, 3, cfg.pupil_size, cfg.pupil_size))
+        g = cfg.field_grid
+        self.pupil_field = nn.Parameter(torch.zeros(g, g, 2, 3, cfg.pupil_size, cfg.pupil_size))
         self.log_channel_scale = nn.Parameter(torch.zeros(3))
-        reach = math.ceil(0.5 * self.c_max * 1.1)  # the largest CoC radius, with room for a learned channel scale
-        if layout.num_tiles > 1 and layout.overlap < reach:
+        self._masks: dict[tuple[int, ...], torch.Tensor] = {}
+        reach = math.ceil(0.5 * c_train * 1.1)  # the largest trained CoC radius, with room for a learned channel scale
+        if cfg.tiling == "overlap" and cfg.overlap < reach:
             log.warning("tile overlap %d px is below the largest CoC radius (~%d px): light that a tile's blur would "
-                        "carry beyond its window is lost (raise model.overlap)", layout.overlap, reach)
-        # (tiles, 1, win, win): 1 on the pixels whose light a tile scatters
-        self.register_buffer("source_mask", torch.from_numpy(layout.source_masks())[:, None], persistent=False)
+                        "carry beyond its window is lost (raise model.overlap)", cfg.overlap, reach)
+
+    # -- the frame's plan ---------------------------------------------------------------------
+    def layout(self, height: int, width: int) -> TileLayout:
+        """The tile grid over an ``height x width`` frame."""
+        return self.config.layout(height, width)
+
+    def plan(self, coc_px: float) -> tuple[int, np.ndarray]:
+        """``(N, diameters)`` of a frame whose largest |CoC| is ``coc_px``: its bands on the
+        lattice (:func:`band_plan`) and their centres ``(N + 1,)`` px (:func:`band_diameters`)."""
+        n, c_plan = band_plan(coc_px, self.step_px)
+        return n, band_diameters(c_plan, n)
+
+    def source_masks(self, layout: TileLayout, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
+        """``(tiles, 1, win, win)``: 1 on the pixels whose light a tile scatters."""
+        key = tuple(layout)
+        if key not in self._masks:
+            self._masks[key] = torch.from_numpy(layout.source_masks())[:, None]
+        return self._masks[key].to(device=device, dtype=dtype)
 
     # -- kernels ---------------------------------------------------------------------------
     def kernel_size(self, n: int) -> int:
         return self.config.kernel_size(n)
 
-    def kernels(self, n: int) -> torch.Tensor:
-        """Band ``n``'s kernels ``(tiles, 2, 3, k, k)`` (side 0 behind, 1 in front, already
-        point-reflected), each summing to 1, as a correlation-free PSF (light lands at
-        ``p + offset``)."""
+    def tile_pupils(self, layout: TileLayout, height: int, width: int, window: torch.Tensor | None = None,
+                    batch: int = 1) -> torch.Tensor:
+        """Log-transmissions of each image's tiles' pupils ``(B, tiles, 2, 3, P, P)`` for frames of
+        ``height x width`` px on the sensor ``window`` ``(B, 4)`` (default: the whole sensor)."""
+        device = self.pupil_shared.device
+        if window is None:
+            window = torch.tensor([[0.0, 0.0, 1.0, 1.0]], device=device)
+        if window.ndim != 2 or window.shape[1] != 4 or window.shape[0] not in (1, batch):
+            raise ValueError(f"window must have shape ({batch}, 4) or (1, 4): (left, top, width, height), got {tuple(window.shape)}")
+        window = window.expand(batch, 4)
+        pos = field_positions(layout, height, width, window.to(device=device, dtype=torch.float32))  # (B, T, 2)
+        g, p = self.config.field_grid, self.config.pupil_size
+        nodes = self.pupil_field.permute(2, 3, 4, 5, 0, 1).reshape(1, 6 * p * p, g, g)  # rows: y, cols: x
+        corr = F.grid_sample(nodes, pos.reshape(1, -1, 1, 2), mode="bilinear", padding_mode="border", align_corners=True)
+        corr = corr.reshape(2, 3, p, p, *pos.shape[:2]).permute(4, 5, 0, 1, 2, 3)
+        return self.pupil_shared + corr
+
+    def kernels(self, n: int, pupils: torch.Tensor, diameter: float) -> torch.Tensor:
+        """Band ``n``'s kernels ``(M, 2, 3, k, k)`` for the pupils ``(M, 2, 3, P, P)`` (log) at CoC
+        ``diameter`` (px): side 0 behind, 1 in front (already point-reflected), each summing to
+        1, as a correlation-free PSF (light lands at ``p + offset``)."""
         cfg = self.config
         k = self.kernel_size(n)
         h = k // 2
         scale = torch.exp(self.log_channel_scale)  # (3,)
-        radius = 0.5 * float(self.diameters[n]) * scale  # (3,) px
-        device = self.pupil_shared.device
+        radius = 0.5 * float(diameter) * scale  # (3,) px
+        device = pupils.device
         offs = (torch.arange(SUPERSAMPLE, dtype=torch.float32, device=device) + 0.5) / SUPERSAMPLE - 0.5
         pos = (torch.arange(-h, h + 1, dtype=torch.float32, device=device)[:, None] + offs).reshape(-1)
         m = pos.numel()
         u = pos[None, None, :] / radius[:, None, None] / PUPIL_EXTENT  # (3, 1, m), in grid units [-1, 1]
         v = pos[None, :, None] / radius[:, None, None] / PUPIL_EXTENT  # rows go down; grid rows too
         grid = torch.stack([u.expand(3, m, m), v.expand(3, m, m)], dim=-1)  # (3, m, m, 2)
-        t_count = self.layout.num_tiles
-        pup = torch.exp(self.pupil_shared[None] + self.pupil_tile).reshape(t_count * 2, 3, cfg.pupil_size, cfg.pupil_size)
-        pup = pup.permute(1, 0, 2, 3)  # (3, T*2, P, P): one grid per channel
-        samples = F.grid_sample(pup, grid, mode="bilinear", padding_mode="zeros", align_corners=True)  # (3, T*2, m, m)
-        kern = samples.reshape(3, t_count * 2, k, SUPERSAMPLE, k, SUPERSAMPLE).mean(dim=(3, 5))
-        kern = kern.permute(1, 0, 2, 3).reshape(t_count, 2, 3, k, k)
+        count = pupils.shape[0]
+        pup = torch.exp(pupils).reshape(count * 2, 3, cfg.pupil_size, cfg.pupil_size).permute(1, 0, 2, 3)  # (3, M*2, P, P)
+        samples = F.grid_sample(pup, grid, mode="bilinear", padding_mode="zeros", align_corners=True)  # (3, M*2, m, m)
+        kern = samples.reshape(3, count * 2, k, SUPERSAMPLE, k, SUPERSAMPLE).mean(dim=(3, 5))
+        kern = kern.permute(1, 0, 2, 3).reshape(count, 2, 3, k, k)
         kern = kern / kern.sum(dim=(-2, -1), keepdim=True).clamp_min(_EPS)
         # in front of the focus plane the aperture's image is inverted
         return torch.stack([kern[:, 0], kern[:, 1].flip(-2, -1)], dim=1)
 
     # -- forward ---------------------------------------------------------------------------
-    def tile_accumulators(self, x: torch.Tensor, tile_active: torch.Tensor | None = None,
-                          scales: dict[int, int] | None = None) -> torch.Tensor:
+    def frame_coc(self, x: torch.Tensor, plan_coc_px: float | None = None) -> float:
+        """The largest |CoC| (px) the frame's plan covers: ``plan_coc_px``, else the input's own."""
+        if plan_coc_px is not None:
+            return float(plan_coc_px)
+        return float((x[:, 3].abs().max() * float(self.contract.coc_scale_px)).item()) if x.numel() else 0.0
+
+    def tile_accumulators(self, x: torch.Tensor, window: torch.Tensor | None = None, tile_active: torch.Tensor | None = None,
+                          scales: dict[int, int] | None = None, plan_coc_px: float | None = None) -> torch.Tensor:
         """``(B, 4, H, W)`` -> per-window accumulators ``(B, tiles, 3 buckets, 6, win, win)``
         (premultiplied RGB and per-channel coverage of the near, same-surface and far light).
 
+        ``window`` ``(B, 4)``: each image's part of the sensor (left, top, width, height in
+        fractions; default the whole sensor), which places its tiles' pupils in the field.
         ``tile_active`` (``(tiles,)`` bool, optional): inactive tiles pass their core through
         as in-focus light without any convolution (exact when their window is all in focus).
         ``scales`` (``{band: s}``, optional; see :func:`band_scales`): band ``n`` is scattered
         on a grid ``s`` times coarser (box-averaged features, the kernel binned by
         :func:`reduce_kernel`, bilinear upsampling), the approximation the fast export makes;
-        the buckets stay at full resolution.
+        the buckets stay at full resolution. ``plan_coc_px``: plan the bands for this largest
+        |CoC| instead of the frame's own (larger CoCs then stay in the last band).
         """
         cfg = self.config
-        self.contract.check_network_input(x)
+        check_network_input(x)
         check_finite("model input", x)
-        layout = self.layout
+        b, _, height, width = x.shape
+        layout = self.layout(height, width)
         n_t = layout.num_tiles
-        b = x.shape[0]
+        blocks, diameters = self.plan(self.frame_coc(x, plan_coc_px))
         xt = tile(x, layout)
         win = xt.shape[-1]
         xt = xt.view(b, n_t, 4, win, win)
         rgb = self.contract.normalization.decode(xt[:, :, :3])  # linear light
-        coc = xt[:, :, 3] * self.c_max  # (B, T, win, win) signed px
-        pos = band_position(coc, self.c_max, cfg.blocks)  # continuous band index
-        src = self.source_mask.to(x.dtype)[None]  # (1, T, 1, win, win)
+        coc = xt[:, :, 3] * float(self.contract.coc_scale_px)  # (B, T, win, win) signed px
+        pos = band_position(coc, float(diameters[-1]), blocks)  # continuous band index
+        src = self.source_masks(layout, x.device, x.dtype)[None]  # (1, T, 1, win, win)
         active = torch.ones(n_t, dtype=torch.bool, device=x.device) if tile_active is None else tile_active.to(x.device)
         # band 0 (in focus): a point, lands where it is, in the receiver's own bucket
         g0 = _gate(pos, 0).unsqueeze(2) * src  # (B, T, 1, win, win)
@@ -287,13 +370,17 @@ class LensBokeh(nn.Module):
         zeros = torch.zeros_like(same)
         acc = torch.stack([zeros, same, zeros], dim=2).view(b * n_t, 3, 6, win, win)
         self.last_convolutions = 0  # (image, tile, band, side) scatters computed by the last call
-        if cfg.blocks == 0:
+        if blocks == 0:
             return acc.view(b, n_t, 3, 6, win, win)
+        # one set of pupils per distinct window: whole frames (or equal windows) share their tiles' kernels
+        shared = window is None or bool((window == window[:1]).all())
+        pupils = self.tile_pupils(layout, height, width, None if window is None else window[:1] if shared else window,
+                                  1 if shared else b).flatten(0, 1)  # (B' T, 2, 3, P, P)
         coc_flat = coc.reshape(b * n_t, win, win)
         rgb_flat = rgb.reshape(b * n_t, 3, win, win)
         scales = scales or {}
         grad = torch.is_grad_enabled()
-        for n in range(1, cfg.blocks + 1):
+        for n in range(1, blocks + 1):
             g = _gate(pos, n) * src[:, :, 0]  # (B, T, win, win)
             kern = None
             for side, sign in ((0, 1.0), (1, -1.0)):
@@ -302,24 +389,31 @@ class LensBokeh(nn.Module):
                 idx = torch.nonzero(used.flatten()).flatten()
                 if idx.numel() == 0:
                     continue  # no pixel of any tile uses this band on this side: nothing computed
-                if kern is None:
-                    kern = self.kernels(n)  # (T, 2, 3, k, k)
+                if shared:  # each tile's kernels once, for every image
+                    kern = self.kernels(n, pupils, float(diameters[n])) if kern is None else kern
+                    side_kern, which = kern[:, side], idx % n_t
+                else:
+                    side_kern = self.kernels(n, pupils[idx], float(diameters[n]))[:, side]
+                    which = torch.arange(idx.numel(), device=x.device)
                 w = gs.reshape(b * n_t, 1, win, win)[idx]
                 feats = torch.cat([rgb_flat[idx] * w, w], dim=1)  # (M, 4, win, win)
-                out = _scatter(feats, kern[:, side], idx % n_t, scales.get(n, 1))
-                bw = bucket_weights(sign * float(self.diameters[n]), coc_flat[idx], cfg.occlusion_margin_px)
+                out = _scatter(feats, side_kern, which, scales.get(n, 1))
+                bw = bucket_weights(sign * float(diameters[n]), coc_flat[idx], cfg.occlusion_margin_px)
                 contrib = bw.permute(1, 0, 2, 3).unsqueeze(2) * out.unsqueeze(1)  # (M, 3, 6, win, win)
                 # one band at a time: memory stays O(image), not O(image x bands)
                 acc = acc.index_add(0, idx, contrib) if grad else acc.index_add_(0, idx, contrib)
                 self.last_convolutions += int(idx.numel())
         return acc.view(b, n_t, 3, 6, win, win)
 
-    def hidden(self, x: torch.Tensor) -> torch.Tensor:
+    def hidden(self, x: torch.Tensor, plan_coc_px: float | None = None) -> torch.Tensor:
         """Linear ``(B, 3, H, W)`` estimate of what foregrounds hide in the input ``(B, 4, H, W)``
         (:func:`neuralbokeh.ops.holes.hidden_background`, occluders looked for within half the
-        largest CoC the network is built for)."""
-        return hidden_background(self.contract.normalization.decode(x[:, :3]), x[:, 3:] * self.c_max,
-                                 radius_px=math.ceil(self.c_max / 2.0))
+        largest CoC of the trained range, or of the frame's plan where that reaches further: a
+        frame within the trained range gets the same fill whatever its plan)."""
+        _, c_plan = band_plan(self.frame_coc(x, plan_coc_px), self.step_px)
+        c_scale = float(self.contract.coc_scale_px)
+        return hidden_background(self.contract.normalization.decode(x[:, :3]), x[:, 3:] * c_scale,
+                                 radius_px=math.ceil(max(c_plan, c_scale) / 2.0))
 
     def composite(self, acc: torch.Tensor, background: torch.Tensor | None = None) -> torch.Tensor:
         """Buckets ``(B, 3, 6, H, W)`` -> linear RGB ``(B, 3, H, W)``: near over same over far,
@@ -338,29 +432,37 @@ class LensBokeh(nn.Module):
             return out + (1.0 - taken).clamp_min(0.0) * background
         return out / taken.clamp_min(_EPS)
 
-    def forward(self, x: torch.Tensor, return_tiles: bool = False, tile_active: torch.Tensor | None = None,
-                scales: dict[int, int] | None = None) -> torch.Tensor:
-        """``(B, 4, H, W)`` -> ``(B, 3, H, W)`` normalised defocused RGB; with ``return_tiles``
-        each window composited on its own ``(B, tiles * 3, win, win)`` (per-tile-loss ablation).
-        ``tile_active``, ``scales``: see :meth:`tile_accumulators`."""
+    def forward(self, x: torch.Tensor, window: torch.Tensor | None = None, return_tiles: bool = False,
+                tile_active: torch.Tensor | None = None, scales: dict[int, int] | None = None,
+                plan_coc_px: float | None = None) -> torch.Tensor:
+        """``(B, 4, H, W)`` (any H, W) -> ``(B, 3, H, W)`` normalised defocused RGB; with
+        ``return_tiles`` each window composited on its own ``(B, tiles * 3, win, win)``
+        (per-tile-loss ablation). ``window``, ``tile_active``, ``scales``, ``plan_coc_px``:
+        see :meth:`tile_accumulators`."""
         cfg = self.config
-        acc = self.tile_accumulators(x, tile_active, scales)  # (B, T, 3, 6, win, win)
+        acc = self.tile_accumulators(x, window, tile_active, scales, plan_coc_px)  # (B, T, 3, 6, win, win)
         b, n_t, _, _, win, _ = acc.shape
-        background = self.hidden(x) if cfg.fill == "background" else None
+        h, w = x.shape[-2:]
+        layout = self.layout(h, w)
+        background = self.hidden(x, plan_coc_px) if cfg.fill == "background" else None
         if return_tiles:
-            bg = None if background is None else tile(background, self.layout).view(b * n_t, 3, win, win)
+            bg = None if background is None else tile(background, layout).view(b * n_t, 3, win, win)
             out = self.composite(acc.view(b * n_t, 3, 6, win, win), bg)
             return self.contract.normalization.encode(out.clamp_min(0.0)).view(b, n_t * 3, win, win)
-        layout = self.layout
         canvas = acc.new_zeros(b, 18, *layout.padded_size)
         for k, r, c in layout.origins():
             canvas[:, :, r : r + win, c : c + win] += acc[:, k].reshape(b, 18, win, win)
         t_o = layout.overlap
-        h, w = self.contract.size
         canvas = canvas[:, :, t_o : t_o + h, t_o : t_o + w]
         out = self.composite(canvas.view(b, 3, 6, h, w), background)
         return self.contract.normalization.encode(out.clamp_min(0.0))
 
     def tile_targets(self, y: torch.Tensor) -> torch.Tensor:
         """Cut a target ``(B, 3, H, W)`` into the windows (for the per-tile-loss ablation)."""
-        return tile(y, self.layout)
+        return tile(y, self.layout(*y.shape[-2:]))
+
+
+def check_network_input(x: torch.Tensor) -> None:
+    """Raise ``ValueError`` unless ``x`` is a network input ``(B, 4, H, W)`` (any H, W >= 1)."""
+    if x.ndim != 4 or x.shape[1] != 4 or min(x.shape[2:]) < 1:
+        raise ValueError(f"input must have shape (B, 4, H, W), got {tuple(x.shape)}")

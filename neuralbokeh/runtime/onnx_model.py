@@ -105,6 +105,8 @@ class OnnxBokeh:
         self.contract = Contract.from_dict(self.meta["contract"])
         self.height, self.width = self.contract.size
         self.layout = TileLayout(*(int(v) for v in self.meta["layout"]))
+        # the part of the lens's sensor the file was exported for (files without one: all of it)
+        self.window = SensorWindow.from_dict(self.meta.get("sensor_window"))
         self.skip_in_focus, self.in_focus_px = skip_in_focus, float(in_focus_px)
         self.has_bands = "band_active" in {i.name for i in self.session.get_inputs()}
         self.last_tiles_run = 0
@@ -117,11 +119,11 @@ class OnnxBokeh:
     def coc_px(self, depth_m: np.ndarray, focus_m: float, window: SensorWindow | None = None) -> np.ndarray:
         """Signed CoC diameter in px (negative in front of the focus plane) from planar depth in m
         (> 0, inf allowed) with the model's lens, at the model's image width, for an image of
-        ``window`` (default: the whole sensor)."""
+        ``window`` (default: the window the file was exported for)."""
         if self.contract.lens is None:
             raise ValueError("this model carries no lens metadata; use render_coc with a CoC map")
         return np.asarray(self.contract.lens.coc_px(np.asarray(depth_m, dtype=np.float64), float(focus_m), self.width,
-                                                    signed=True, window=window))
+                                                    signed=True, window=window or self.window))
 
     def render(self, aif: np.ndarray, depth_m: np.ndarray, focus_m: float, clamp_coc: bool = False,
                window: SensorWindow | None = None) -> np.ndarray:
@@ -133,7 +135,7 @@ class OnnxBokeh:
             focus_m: focus distance in m (greater than the focal length).
             clamp_coc: clamp CoCs beyond the trained maximum (with a warning) instead of failing.
             window: the part of the lens's sensor the image covers, when it is a crop
-                (default: the whole sensor).
+                (default: the window the file was exported for, the whole sensor unless told).
 
         Returns:
             float32 linear RGB in the layout of ``aif``.

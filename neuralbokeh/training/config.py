@@ -29,6 +29,10 @@ class DataConfig:
         split_seed: seed of the scene-level split.
         normalization_scale: linear value mapped to 0 by :class:`neuralbokeh.core.normalization.Normalization`.
         cache: keep loaded samples in memory (small datasets).
+        crop: ``[height, width]`` px of the random crop each training sample is cut to (scenes
+            of any sizes, mixed, each at least this big; every crop carries its window on the
+            sensor); ``[]``: whole scenes, which must then share one size. Held-out evaluation
+            always runs on whole frames. Lens network only.
     """
 
     roots: list[str] = field(default_factory=list)
@@ -36,6 +40,7 @@ class DataConfig:
     split_seed: int = 0
     normalization_scale: float = 0.18
     cache: bool = True
+    crop: list[int] = field(default_factory=list)
 
 
 @dataclass
@@ -51,8 +56,8 @@ class TrainSection:
             so a 41x41 kernel's output would move ~1700x more than a 1x1 weight's; dividing by
             the fan-in gives every layer the same output step (as muP prescribes for Adam).
             ``"none"``: one learning rate for all (measured: diverges at N = 20 with lr 1e-3).
-        tile_lr_scale: the lens network's per-tile pupil corrections learn at this fraction of
-            ``lr`` (the lens-wide pupil at ``lr``), in (0, 1].
+        field_lr_scale: the lens network's field-dependent pupil corrections learn at this
+            fraction of ``lr`` (the lens-wide pupil at ``lr``), in (0, 1].
         lr_schedule: ``"cosine"`` (to 10% of lr) or ``"constant"``, after ``warmup_steps``.
         warmup_steps: linear warm-up steps.
         grad_clip: clip the gradient norm to this value (0 = off).
@@ -70,7 +75,7 @@ class TrainSection:
     lr: float = 2e-3
     lr_schedule: str = "cosine"
     lr_kernel_scaling: str = "fan_in"
-    tile_lr_scale: float = 0.25
+    field_lr_scale: float = 0.25
     warmup_steps: int = 20
     grad_clip: float = 1.0
     loss: str = "image"
@@ -104,8 +109,13 @@ class TrainConfig:
         for name in ("steps", "batch_size", "eval_every", "checkpoint_every", "max_nonfinite"):
             if getattr(t, name) < 1:
                 raise ValueError(f"train.{name} must be >= 1, got {getattr(t, name)}")
-        if not (0.0 < t.tile_lr_scale <= 1.0):
-            raise ValueError(f"train.tile_lr_scale must be in (0, 1], got {t.tile_lr_scale}")
+        if not (0.0 < t.field_lr_scale <= 1.0):
+            raise ValueError(f"train.field_lr_scale must be in (0, 1], got {t.field_lr_scale}")
+        if d.crop and (len(d.crop) != 2 or any(isinstance(v, bool) or not isinstance(v, int) or v < 1 for v in d.crop)):
+            raise ValueError(f"data.crop must be [height, width] in px (integers >= 1) or [] for whole scenes, got {d.crop!r}")
+        if d.crop and self.model.architecture != "lens":
+            raise ValueError(f"data.crop needs the lens network (model.architecture = 'lens'): the "
+                             f"{self.model.architecture!r} network is built for one image size")
         if t.lr <= 0 or t.grad_clip < 0 or t.warmup_steps < 0 or t.threads < 0:
             raise ValueError("train.lr must be > 0 and train.grad_clip, warmup_steps, threads >= 0")
 

@@ -56,25 +56,33 @@ CSV_FIELDS = [
 ]
 
 
-def compute_loss(model: torch.nn.Module, x: torch.Tensor, y: torch.Tensor, kind: str) -> torch.Tensor:
+def run_model(model: torch.nn.Module, x: torch.Tensor, window: torch.Tensor | None, **kwargs: Any) -> torch.Tensor:
+    """``model(x)``, with each image's sensor ``window`` ``(B, 4)`` for the lens network (the
+    paper's network has no notion of where on the sensor it is)."""
+    inner = model.module if isinstance(model, DistributedDataParallel) else model
+    return model(x, window, **kwargs) if inner.config.architecture == "lens" else model(x, **kwargs)
+
+
+def compute_loss(model: torch.nn.Module, x: torch.Tensor, y: torch.Tensor, kind: str,
+                 window: torch.Tensor | None = None) -> torch.Tensor:
     """MSE of the reassembled image (``"image"``) or of the un-blended tiles (``"tile"``)."""
     if kind == "tile":
         inner = model.module if isinstance(model, DistributedDataParallel) else model
-        return F.mse_loss(model(x, return_tiles=True), inner.tile_targets(y))
-    return F.mse_loss(model(x), y)
+        return F.mse_loss(run_model(model, x, window, return_tiles=True), inner.tile_targets(y))
+    return F.mse_loss(run_model(model, x, window), y)
 
 
-def param_groups(model: torch.nn.Module, scaling: str, tile_lr_scale: float = 1.0) -> list[dict[str, Any]]:
+def param_groups(model: torch.nn.Module, scaling: str, field_lr_scale: float = 1.0) -> list[dict[str, Any]]:
     """Adam parameter groups, each with an ``lr_scale``: the paper network's per-channel k x k
     kernels at ``1 / k^2`` with ``scaling = "fan_in"`` (see ``TrainSection.lr_kernel_scaling``),
-    the lens network's per-tile pupil corrections at ``tile_lr_scale``, everything else at 1."""
+    the lens network's field-dependent pupil corrections at ``field_lr_scale``, everything else at 1."""
     groups: dict[float, list[torch.nn.Parameter]] = {}
     for name, p in model.named_parameters():
         scale = 1.0
         if scaling == "fan_in" and name.endswith("conv.weight") and p.ndim == 4:
             scale = 1.0 / (p.shape[-1] * p.shape[-2])
-        elif name == "pupil_tile":
-            scale = tile_lr_scale
+        elif name == "pupil_field":
+            scale = field_lr_scale
         groups.setdefault(scale, []).append(p)
     return [{"params": ps, "lr_scale": s} for s, ps in sorted(groups.items(), reverse=True)]
 
@@ -90,24 +98,50 @@ def _lr_factor(step: int, cfg: TrainConfig) -> float:
 
 
 class _Samples:
-    """Dataset items as batched tensors, optionally cached in memory."""
+    """Dataset items as batched tensors, optionally cached in memory, optionally cut to random
+    crops (``crop`` ``(height, width)`` px), each with its window on the sensor."""
 
-    def __init__(self, ds: FocalStackDataset, cache: bool) -> None:
-        self.ds, self.cache, self.store = ds, cache, {}
+    def __init__(self, ds: FocalStackDataset, cache: bool, crop: list[int] | None = None) -> None:
+        self.ds, self.cache, self.store, self.crop = ds, cache, {}, crop or None
+        self.aifs: dict[int, torch.Tensor] = {}  # by scene index
 
     def item(self, i: int) -> dict[str, Any]:
         if i in self.store:
             return self.store[i]
         it = self.ds[i]
-        if self.cache:
+        if self.cache:  # the slices of a scene share one all-in-focus image
+            it["aif"] = self.aifs.setdefault(self.ds.items[i][0], it["aif"])
             self.store[i] = it
         return it
 
-    def batch(self, indices: list[int], device: torch.device) -> tuple[torch.Tensor, torch.Tensor, list[str]]:
-        items = [self.item(i) for i in indices]
-        x = torch.stack([torch.cat([it["aif"], it["coc"]], 0) for it in items]).to(device)
-        y = torch.stack([it["defocus"] for it in items]).to(device)
-        return x, y, [f"{it['scene']}#{it['slice']}" for it in items]
+    def batch(self, indices: list[int], device: torch.device, seed: int = 0,
+              ) -> tuple[torch.Tensor, torch.Tensor, list[str], torch.Tensor]:
+        """``(x (B, 4, h, w), y (B, 3, h, w), names, windows (B, 4))``; the crops' places are a
+        function of ``seed`` (the step) alone, so a resumed run cuts the same crops."""
+        g = torch.Generator().manual_seed(seed)
+        xs, ys, windows, names = [], [], [], []
+        for i in indices:
+            it = self.item(i)
+            x, y, win = torch.cat([it["aif"], it["coc"]], 0), it["defocus"], it["window"]
+            if self.crop:
+                x, y, win = random_crop(x, y, win, self.crop, g)
+            xs.append(x)
+            ys.append(y)
+            windows.append(win)
+            names.append(f"{it['scene']}#{it['slice']}")
+        return torch.stack(xs).to(device), torch.stack(ys).to(device), names, torch.stack(windows).to(device)
+
+
+def random_crop(x: torch.Tensor, y: torch.Tensor, window: torch.Tensor, size: list[int], generator: torch.Generator,
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A random ``size`` = ``(h, w)`` px crop of an input ``(4, H, W)`` and its target ``(3, H, W)``,
+    and the crop's window on the sensor ``(4,)`` within the scene's ``window``."""
+    (h, w), (full_h, full_w) = size, x.shape[-2:]
+    r = int(torch.randint(0, full_h - h + 1, (1,), generator=generator))
+    c = int(torch.randint(0, full_w - w + 1, (1,), generator=generator))
+    left, top, width, height = (float(v) for v in window)
+    sub = torch.tensor([left + width * c / full_w, top + height * r / full_h, width * w / full_w, height * h / full_h])
+    return x[:, r : r + h, c : c + w], y[:, r : r + h, c : c + w], sub
 
 
 def _metrics(pred: torch.Tensor, target: torch.Tensor) -> tuple[float, float]:
@@ -137,7 +171,7 @@ def held_out_baselines(ds: FocalStackDataset, samples: _Samples | None = None,
     names = ("identity", "gaussian") + (("oracle",) if exact else ())
     sums = {f"{n}_{m}": 0.0 for n in names for m in ("psnr", "ssim")}
     for i in range(len(ds)):
-        x, y, _ = samples.batch([i], device)
+        x, y, _, _ = samples.batch([i], device)
         linear, coc = norm.decode(x[:, :3].double()), x[:, 3:].double() * scale
         preds = {"identity": x[:, :3], "gaussian": norm.encode(scatter_defocus(linear, coc, gauss)).float()}
         if exact:
@@ -157,9 +191,9 @@ def held_out_metrics(model: torch.nn.Module, samples: _Samples, device: torch.de
     :func:`held_out_baselines` (computed when not given)."""
     model.eval()
     sums = {"eval_psnr": 0.0, "eval_ssim": 0.0}
-    for i in range(len(samples.ds)):
-        x, y, _ = samples.batch([i], device)
-        p, s = _metrics(model(x), y)
+    for i in range(len(samples.ds)):  # whole frames, each with its own sensor window
+        x, y, _, window = samples.batch([i], device)
+        p, s = _metrics(run_model(model, x, window), y)
         sums["eval_psnr"] += p
         sums["eval_ssim"] += s
     out = {k: v / max(len(samples.ds), 1) for k, v in sums.items()}
@@ -246,12 +280,12 @@ def _train(
     split = {"test_fraction": cfg.data.test_fraction, "split_seed": cfg.data.split_seed, "normalization": norm}
     train_ds = FocalStackDataset(cfg.data.roots, "train" if cfg.data.test_fraction > 0 else "all", **split)
     test_ds = FocalStackDataset(cfg.data.roots, "test", **split) if cfg.data.test_fraction > 0 else None
-    contract = train_ds.contract()
+    contract = train_ds.contract(cfg.data.crop or None)
     mcfg = cfg.model.resolved(train_ds.max_coc_px)
 
     torch.manual_seed(t.seed)
     model = build_model(mcfg, contract).to(proc.device)
-    optimizer = torch.optim.Adam(param_groups(model, t.lr_kernel_scaling, t.tile_lr_scale), lr=t.lr)
+    optimizer = torch.optim.Adam(param_groups(model, t.lr_kernel_scaling, t.field_lr_scale), lr=t.lr)
     start, skipped = 0, 0
     if resume:
         ck = load_checkpoint(resume, map_location=proc.device)
@@ -267,13 +301,13 @@ def _train(
     steps_per_epoch = len(sampler) // per_rank
     if steps_per_epoch < 1:
         raise ValueError(f"{len(train_ds)} training samples are too few for batch_size {t.batch_size}")
-    samples = _Samples(train_ds, cfg.data.cache)
+    samples = _Samples(train_ds, cfg.data.cache, cfg.data.crop)
     test_samples = _Samples(test_ds, cfg.data.cache) if test_ds else None
 
     lead = proc.rank == 0
     run_log = _RunLog(out_dir, cfg, append=bool(resume)) if lead else None
     if lead:
-        log.info("model %s: %d tiles, N=%d, %d parameters", mcfg.to_dict(), model.layout.num_tiles, mcfg.blocks,
+        log.info("model %s: N=%d over the training range, %d parameters", mcfg.to_dict(), mcfg.blocks,
                  sum(p.numel() for p in model.parameters()))
 
     def checkpoint(step: int, metrics: dict) -> Path:
@@ -295,8 +329,9 @@ def _train(
             if epoch != order_epoch:
                 sampler.set_epoch(epoch)
                 order, order_epoch = list(sampler), epoch
-            x, y, names = samples.batch(order[pos * per_rank : (pos + 1) * per_rank], proc.device)
-            loss, finite = _step(net, model, optimizer, x, y, cfg, step, proc)
+            x, y, names, window = samples.batch(order[pos * per_rank : (pos + 1) * per_rank], proc.device,
+                                                seed=t.seed * 1_000_003 + step * 101 + proc.rank)
+            loss, finite = _step(net, model, optimizer, x, y, window, cfg, step, proc)
             if not finite:
                 skipped += 1
                 consecutive += 1
@@ -347,14 +382,14 @@ def _train(
 
 
 def _step(net: torch.nn.Module, model: torch.nn.Module, optimizer: torch.optim.Optimizer, x: torch.Tensor, y: torch.Tensor,
-          cfg: TrainConfig, step: int, proc: _Process) -> tuple[float, bool]:
+          window: torch.Tensor, cfg: TrainConfig, step: int, proc: _Process) -> tuple[float, bool]:
     """One optimiser step (skipped, on every rank, when any rank's loss or gradient is not
     finite); returns ``(loss, finite)``."""
     t = cfg.train
     for group in optimizer.param_groups:  # the schedule is a function of the step alone
         group["lr"] = group["lr_scale"] * t.lr * _lr_factor(step, cfg)
     optimizer.zero_grad(set_to_none=True)
-    loss = compute_loss(net, x, y, t.loss)
+    loss = compute_loss(net, x, y, t.loss, window)
     loss.backward()
     finite = torch.tensor(
         [float(torch.isfinite(loss)) * float(all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None))],
