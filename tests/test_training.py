@@ -15,6 +15,7 @@ from neuralbokeh.data.dataset import FocalStackDataset
 from neuralbokeh.networks.config import ModelConfig
 from neuralbokeh.training import load_config, train
 from neuralbokeh.training import loop as loop_module
+from neuralbokeh.training.loop import Samples
 from neuralbokeh.training.config import build_config
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -177,6 +178,12 @@ def test_crops_of_scenes_of_mixed_sizes_train_and_evaluate_on_whole_frames(tiny_
     sizes = {tuple(FocalStackDataset(r.strip("'"), "all")[0]["aif"].shape[-2:]) for r in roots}
     assert sizes == {(32, 40), (36, 48)}
     assert straight["metrics"]["eval_psnr"] > straight["metrics"]["identity_psnr"]  # whole held-out frames
+    # a crop read from disk (its rows only) is the crop cut from the cached scene
+    ds = FocalStackDataset([r.strip("'") for r in roots], "train")
+    cached, read = (Samples(ds, cache, [24, 32]).batch(list(range(0, len(ds), 3)), torch.device("cpu"), seed=7)
+                    for cache in (True, False))
+    assert torch.equal(cached[0], read[0]) and torch.equal(cached[1], read[1]) and cached[2] == read[2]
+    assert torch.allclose(cached[3], read[3], atol=1e-6) and (cached[3][:, 2:] < 1).all()  # windows: crops of the sensor
     first = train(config("b", "data.crop=[24, 32]"), progress=False, stop_at=2)
     resumed = train(config("b", "data.crop=[24, 32]"), resume=first["checkpoint"], progress=False)
     b = torch.load(resumed["checkpoint"], weights_only=False)

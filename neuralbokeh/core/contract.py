@@ -33,7 +33,9 @@ class Contract:
     """What a model expects of its inputs and what its outputs mean.
 
     Args:
-        image_height, image_width: the image size the model is built for (px), >= 1.
+        image_height, image_width: the image size the model is built for (px), >= 1: the
+            paper network's only size; the lens network's training size (its crops) in a
+            checkpoint and its plate format in an ONNX file (it renders any size).
         normalization: the colour map between linear HDR and the network's [-1, 1).
         coc_scale_px: the CoC input's px per unit (the network sees ``coc_px / coc_scale_px``),
             > 0; by default the data's largest |CoC| (at least 1 px).

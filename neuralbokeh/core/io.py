@@ -156,12 +156,14 @@ def write_image(
     return path
 
 
-def read_image(path: str | os.PathLike, with_attributes: bool = False) -> Any:
+def read_image(path: str | os.PathLike, with_attributes: bool = False, rows: tuple[int, int] | None = None) -> Any:
     """Read an image as float32 ``(H, W, C)`` (integer files scaled to [0, 1] by OpenImageIO).
 
     Args:
         path: any format OpenImageIO reads.
         with_attributes: also return the header metadata as a dict.
+        rows: ``(r0, r1)``: read only these scanlines (``(r1 - r0, W, C)``; an EXR decodes
+            only the blocks holding them: a training crop costs its rows, not the frame).
 
     Returns:
         The array, or ``(array, attributes)``.
@@ -178,13 +180,19 @@ def read_image(path: str | os.PathLike, with_attributes: bool = False) -> Any:
         raise OSError(f"cannot read {path}: {oiio.geterror()}")
     try:
         spec = inp.spec()
-        arr = inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT)
+        r0, r1 = (0, spec.height) if rows is None else rows
+        if not 0 <= r0 < r1 <= spec.height:
+            raise ValueError(f"rows {rows} are outside {path}'s {spec.height} rows")
+        if rows is None:
+            arr = inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT)
+        else:
+            arr = inp.read_scanlines(0, 0, spec.y + r0, spec.y + r1, 0, 0, spec.nchannels, oiio.FLOAT)
         if arr is None:
             raise OSError(f"cannot read {path}: {inp.geterror()}")
         attrs = {a.name: a.value for a in spec.extra_attribs} if with_attributes else None
     finally:
         inp.close()
-    arr = np.asarray(arr, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
+    arr = np.asarray(arr, dtype=np.float32).reshape(r1 - r0, spec.width, spec.nchannels)
     return (arr, attrs) if with_attributes else arr
 
 

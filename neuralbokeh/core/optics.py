@@ -50,15 +50,21 @@ class SensorWindow:
                 raise ValueError(f"sensor window {name} must be a fraction of the sensor in [0, 1], got {v!r}")
         if self.width <= 0 or self.height <= 0:
             raise ValueError(f"sensor window must have width and height > 0, got {self.width} x {self.height}")
-        if self.left + self.width > 1.0 + 1e-9 or self.top + self.height > 1.0 + 1e-9:
+        if self.left + self.width > 1.0 + 1e-6 or self.top + self.height > 1.0 + 1e-6:  # float32 round-off
             raise ValueError(f"sensor window {self.to_dict()} reaches past the sensor (left + width and top + height "
                              "must be <= 1)")
 
     @classmethod
     def from_crop(cls, rows: tuple[int, int], cols: tuple[int, int], full_height_px: int, full_width_px: int) -> SensorWindow:
         """The window of the pixel rows ``[r0, r1)`` and columns ``[c0, c1)`` of a full frame."""
+        return cls().crop(rows, cols, full_height_px, full_width_px)
+
+    def crop(self, rows: tuple[int, int], cols: tuple[int, int], height_px: int, width_px: int) -> SensorWindow:
+        """The window of rows ``[r0, r1)`` and columns ``[c0, c1)`` of an image of this window
+        that is ``height_px x width_px`` px."""
         (r0, r1), (c0, c1) = rows, cols
-        return cls(c0 / full_width_px, r0 / full_height_px, (c1 - c0) / full_width_px, (r1 - r0) / full_height_px)
+        return SensorWindow(self.left + self.width * c0 / width_px, self.top + self.height * r0 / height_px,
+                            self.width * (c1 - c0) / width_px, self.height * (r1 - r0) / height_px)
 
     def sensor_width_px(self, image_width_px: float) -> float:
         """The width (px) the whole sensor has at the scale of an image of this window."""

@@ -159,9 +159,9 @@ def read_scene_meta(folder: str | os.PathLike) -> dict[str, Any]:
     return meta
 
 
-def _load(folder: Path, name: str, channels: int, size: dict[str, int]) -> np.ndarray:
-    arr = read_image(folder / name)
-    want = (size["height"], size["width"], channels)
+def _load(folder: Path, name: str, channels: int, size: dict[str, int], rows: tuple[int, int] | None = None) -> np.ndarray:
+    arr = read_image(folder / name, rows=rows)
+    want = (size["height"] if rows is None else rows[1] - rows[0], size["width"], channels)
     if arr.shape != want:
         raise ValueError(f"{folder / name}: expected shape (H, W, C) = {want} from scene.json, got {arr.shape}")
     return arr
@@ -314,12 +314,24 @@ class FocalStackDataset(torch.utils.data.Dataset):
                         ThinLens.from_dict(lens) if lens else None, self.shared("aperture"))
 
     def __getitem__(self, index: int) -> dict[str, Any]:
+        return self._read(index)
+
+    def crop_item(self, index: int, size: Sequence[int], generator: torch.Generator) -> dict[str, Any]:
+        """Item ``index`` cut to a random crop of ``size`` ``(h, w)`` px (the place drawn from
+        ``generator``: a row, then a column, as :func:`random_crop_place`), reading only the
+        crop's rows; its ``window`` is the crop's part of the sensor."""
+        meta = self.metas[self.items[index][0]]
+        r, c = random_crop_place((meta["image_size"]["height"], meta["image_size"]["width"]), size, generator)
+        return self._read(index, (r, r + int(size[0])), (c, c + int(size[1])))
+
+    def _read(self, index: int, rows: tuple[int, int] | None = None, cols: tuple[int, int] | None = None) -> dict[str, Any]:
         i, k = self.items[index]
         folder, meta = self.scenes[i], self.metas[i]
         size, sl = meta["image_size"], meta["slices"][k]
-        aif = _load(folder, meta["files"]["aif"], 3, size)
-        defocus = _load(folder, sl["defocus"], 3, size)
-        coc = _load(folder, sl["coc"], 1, size)
+        cut = slice(None) if cols is None else slice(*cols)
+        aif = _load(folder, meta["files"]["aif"], 3, size, rows)[:, cut]
+        defocus = _load(folder, sl["defocus"], 3, size, rows)[:, cut]
+        coc = _load(folder, sl["coc"], 1, size, rows)[:, cut]
         check_nonnegative(str(folder / meta["files"]["aif"]), aif)
         check_nonnegative(str(folder / sl["defocus"]), defocus)
         check_finite(str(folder / sl["coc"]), coc, " px")
@@ -336,6 +348,8 @@ class FocalStackDataset(torch.utils.data.Dataset):
             return torch.from_numpy(np.ascontiguousarray(a.transpose(2, 0, 1), dtype=np.float32))
 
         window = SensorWindow.from_dict(meta.get("sensor_window"))
+        if rows is not None:
+            window = window.crop(rows, cols, size["height"], size["width"])
         return {
             "aif": chw(aif),
             "coc": chw(coc),
@@ -345,3 +359,10 @@ class FocalStackDataset(torch.utils.data.Dataset):
             "slice": k,
             "focus_m": float(sl["focus_m"]),
         }
+
+
+def random_crop_place(size: Sequence[int], crop: Sequence[int], generator: torch.Generator) -> tuple[int, int]:
+    """``(row, col)`` of a random ``crop`` ``(h, w)`` inside an image of ``size`` ``(H, W)`` px."""
+    r = int(torch.randint(0, int(size[0]) - int(crop[0]) + 1, (1,), generator=generator))
+    c = int(torch.randint(0, int(size[1]) - int(crop[1]) + 1, (1,), generator=generator))
+    return r, c

@@ -320,9 +320,9 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], diameters: np.ndarray, c
 
     Args:
         kernels: ``{n: (tiles, 2, 3, k, k)}`` point-spread functions of block n (side 0 behind,
-            1 in front), as ``LensBokeh.kernels(n)`` returns them, or binned by
+            1 in front), as ``LensBokeh.kernels`` returns them for the plate's tiles, or binned by
             ``reduce_kernel`` for the bands that ``scales`` reduces.
-        diameters: ``(N + 1,)`` band centres in px (``LensBokeh.diameters``).
+        diameters: ``(N + 1,)`` band centres in px (``LensBokeh.plan``).
         cfg, contract: the network's config and data contract (its tile grid, normalisation
             and CoC scale).
         fp16: float16 convolutions. opset: >= 18 (``Col2Im``). metadata: ``metadata_props``.

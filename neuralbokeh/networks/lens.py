@@ -349,6 +349,8 @@ class LensBokeh(nn.Module):
         check_network_input(x)
         check_finite("model input", x)
         b, _, height, width = x.shape
+        if window is not None and (window.ndim != 2 or window.shape[1] != 4 or window.shape[0] not in (1, b)):
+            raise ValueError(f"window must have shape ({b}, 4) or (1, 4): (left, top, width, height), got {tuple(window.shape)}")
         layout = self.layout(height, width)
         n_t = layout.num_tiles
         blocks, diameters = self.plan(self.frame_coc(x, plan_coc_px))

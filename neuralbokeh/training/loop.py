@@ -43,7 +43,8 @@ from ..core.apertures import ApertureModel, Gaussian
 from ..core.io import write_json
 from ..core.normalization import Normalization
 from ..data.check import require_sound
-from ..data.dataset import FocalStackDataset
+from ..core.optics import SensorWindow
+from ..data.dataset import FocalStackDataset, random_crop_place
 from ..networks import build_model
 from ..render import scatter_defocus
 from .config import TrainConfig
@@ -97,7 +98,7 @@ def _lr_factor(step: int, cfg: TrainConfig) -> float:
     return 0.1 + 0.9 * 0.5 * (1.0 + math.cos(math.pi * min(1.0, progress)))
 
 
-class _Samples:
+class Samples:
     """Dataset items as batched tensors, optionally cached in memory, optionally cut to random
     crops (``crop`` ``(height, width)`` px), each with its window on the sensor."""
 
@@ -121,27 +122,29 @@ class _Samples:
         g = torch.Generator().manual_seed(seed)
         xs, ys, windows, names = [], [], [], []
         for i in indices:
-            it = self.item(i)
-            x, y, win = torch.cat([it["aif"], it["coc"]], 0), it["defocus"], it["window"]
-            if self.crop:
-                x, y, win = random_crop(x, y, win, self.crop, g)
-            xs.append(x)
-            ys.append(y)
-            windows.append(win)
+            if self.crop and not self.cache:  # read the crop's rows only
+                it = self.ds.crop_item(i, self.crop, g)
+            else:
+                it = self.item(i)
+                if self.crop:
+                    it = random_crop(it, self.crop, g)
+            xs.append(torch.cat([it["aif"], it["coc"]], 0))
+            ys.append(it["defocus"])
+            windows.append(it["window"])
             names.append(f"{it['scene']}#{it['slice']}")
         return torch.stack(xs).to(device), torch.stack(ys).to(device), names, torch.stack(windows).to(device)
 
 
-def random_crop(x: torch.Tensor, y: torch.Tensor, window: torch.Tensor, size: list[int], generator: torch.Generator,
-                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """A random ``size`` = ``(h, w)`` px crop of an input ``(4, H, W)`` and its target ``(3, H, W)``,
-    and the crop's window on the sensor ``(4,)`` within the scene's ``window``."""
-    (h, w), (full_h, full_w) = size, x.shape[-2:]
-    r = int(torch.randint(0, full_h - h + 1, (1,), generator=generator))
-    c = int(torch.randint(0, full_w - w + 1, (1,), generator=generator))
-    left, top, width, height = (float(v) for v in window)
-    sub = torch.tensor([left + width * c / full_w, top + height * r / full_h, width * w / full_w, height * h / full_h])
-    return x[:, r : r + h, c : c + w], y[:, r : r + h, c : c + w], sub
+def random_crop(item: dict[str, Any], size: list[int], generator: torch.Generator) -> dict[str, Any]:
+    """A dataset item (whole scene, in memory) cut to a random ``size`` = ``(h, w)`` px crop, at
+    the place :meth:`FocalStackDataset.crop_item` draws from the same generator state, with the
+    crop's window on the sensor."""
+    full = item["aif"].shape[-2:]
+    r, c = random_crop_place(full, size, generator)
+    (h, w), cut = size, (slice(None), slice(r, r + size[0]), slice(c, c + size[1]))
+    window = SensorWindow(*(float(v) for v in item["window"])).crop((r, r + h), (c, c + w), *full)
+    return {**item, "aif": item["aif"][cut], "coc": item["coc"][cut], "defocus": item["defocus"][cut],
+            "window": torch.tensor([window.left, window.top, window.width, window.height], dtype=torch.float32)}
 
 
 def _metrics(pred: torch.Tensor, target: torch.Tensor) -> tuple[float, float]:
@@ -157,13 +160,13 @@ def oracle_apertures(ds: FocalStackDataset) -> list[ApertureModel] | None:
 
 
 @torch.no_grad()
-def held_out_baselines(ds: FocalStackDataset, samples: _Samples | None = None,
+def held_out_baselines(ds: FocalStackDataset, samples: Samples | None = None,
                        device: torch.device | None = None) -> dict[str, float]:
     """Mean PSNR/SSIM (``identity_*``, ``gaussian_*``, ``oracle_*``) of the baselines on a
     held-out split, in the training metric: the AIF unchanged, the CoC-driven Gaussian scatter and
     the scatter with each scene's own aperture (``scene.json``), all fed the held-out AIF + CoC.
     The ``oracle_*`` keys are left out when a scene declares no aperture (:func:`oracle_apertures`)."""
-    samples = samples or _Samples(ds, cache=False)
+    samples = samples or Samples(ds, cache=False)
     device = device or torch.device("cpu")
     norm, scale = ds.normalization, ds.coc_scale_px
     gauss = ApertureModel(Gaussian(0.5))
@@ -185,7 +188,7 @@ def held_out_baselines(ds: FocalStackDataset, samples: _Samples | None = None,
 
 
 @torch.no_grad()
-def held_out_metrics(model: torch.nn.Module, samples: _Samples, device: torch.device,
+def held_out_metrics(model: torch.nn.Module, samples: Samples, device: torch.device,
                      baselines: dict | None = None) -> dict[str, float]:
     """Mean PSNR/SSIM (``eval_*``) of the model over held-out samples, with the baselines of
     :func:`held_out_baselines` (computed when not given)."""
@@ -301,8 +304,8 @@ def _train(
     steps_per_epoch = len(sampler) // per_rank
     if steps_per_epoch < 1:
         raise ValueError(f"{len(train_ds)} training samples are too few for batch_size {t.batch_size}")
-    samples = _Samples(train_ds, cfg.data.cache, cfg.data.crop)
-    test_samples = _Samples(test_ds, cfg.data.cache) if test_ds else None
+    samples = Samples(train_ds, cfg.data.cache, cfg.data.crop)
+    test_samples = Samples(test_ds, cfg.data.cache) if test_ds else None
 
     lead = proc.rank == 0
     run_log = _RunLog(out_dir, cfg, append=bool(resume)) if lead else None
