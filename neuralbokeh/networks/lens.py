@@ -391,15 +391,11 @@ class LensBokeh(nn.Module):
                 idx = torch.nonzero(used.flatten()).flatten()
                 if idx.numel() == 0:
                     continue  # no pixel of any tile uses this band on this side: nothing computed
-                if shared:  # each tile's kernels once, for every image
-                    kern = self.kernels(n, pupils, float(diameters[n])) if kern is None else kern
-                    side_kern, which = kern[:, side], idx % n_t
-                else:
-                    side_kern = self.kernels(n, pupils[idx], float(diameters[n]))[:, side]
-                    which = torch.arange(idx.numel(), device=x.device)
+                # each distinct pupil's kernels once per band, both sides (shared: one set for every image)
+                kern = self.kernels(n, pupils, float(diameters[n])) if kern is None else kern
                 w = gs.reshape(b * n_t, 1, win, win)[idx]
                 feats = torch.cat([rgb_flat[idx] * w, w], dim=1)  # (M, 4, win, win)
-                out = _scatter(feats, side_kern, which, scales.get(n, 1))
+                out = _scatter(feats, kern[:, side], idx % n_t if shared else idx, scales.get(n, 1))
                 bw = bucket_weights(sign * float(diameters[n]), coc_flat[idx], cfg.occlusion_margin_px)
                 contrib = bw.permute(1, 0, 2, 3).unsqueeze(2) * out.unsqueeze(1)  # (M, 3, 6, win, win)
                 # one band at a time: memory stays O(image), not O(image x bands)
@@ -442,6 +438,8 @@ class LensBokeh(nn.Module):
         (per-tile-loss ablation). ``window``, ``tile_active``, ``scales``, ``plan_coc_px``:
         see :meth:`tile_accumulators`."""
         cfg = self.config
+        check_network_input(x)
+        plan_coc_px = self.frame_coc(x, plan_coc_px)  # read once (a device sync): the bands and the fill share it
         acc = self.tile_accumulators(x, window, tile_active, scales, plan_coc_px)  # (B, T, 3, 6, win, win)
         b, n_t, _, _, win, _ = acc.shape
         h, w = x.shape[-2:]
