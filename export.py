@@ -55,7 +55,7 @@ def main(argv: list[str] | None = None) -> int:
         report = export_checkpoint(args.checkpoint, args.out, args.opset, args.fp16, args.kernels, args.tolerance, args.threads,
                                    size=(args.size[1], args.size[0]) if args.size else None,
                                    window=SensorWindow(*args.sensor_window) if args.sensor_window else None,
-                                   max_coc_px=args.max_coc)
+                                   max_coc_px=args.max_coc, progress=True)
     except (FileNotFoundError, FileExistsError, PermissionError, ValueError) as e:
         raise SystemExit(f"error: {e}")
     meta = report["metadata"]

@@ -80,8 +80,11 @@ def _peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
-def make_model(out: Path, reuse: bool) -> dict[str, Path]:
-    """The prior-initialised checkpoint and its four exports."""
+EXPORTS = {"default": (None, False), "direct": ("direct", False), "rows": ("rows", False), "default_fp16": (None, True)}
+
+
+def make_model(out: Path, reuse: bool, names: tuple[str, ...] = tuple(EXPORTS)) -> dict[str, Path]:
+    """The prior-initialised checkpoint and its exports ``names`` (keys of ``EXPORTS``)."""
     import torch
 
     from neuralbokeh.checkpoint import save_checkpoint
@@ -102,8 +105,8 @@ def make_model(out: Path, reuse: bool) -> dict[str, Path]:
         save_checkpoint(ckpt, {"model_config": cfg.to_dict(), "contract": contract.to_dict(),
                                "model_state": build_model(cfg, contract).state_dict(), "step": 0})
     paths = {"checkpoint": ckpt}
-    for name, kernels, fp16 in (("default", None, False), ("direct", "direct", False), ("rows", "rows", False),
-                                ("default_fp16", None, True)):
+    for name in names:
+        kernels, fp16 = EXPORTS[name]
         path = out / f"{name}.onnx"
         if not (reuse and path.exists()):
             t = time.perf_counter()

@@ -9,7 +9,6 @@ Older formats are refused with a one-line reason (no user holds one).
 from __future__ import annotations
 
 import os
-import pickle
 from pathlib import Path
 from typing import Any
 
@@ -51,7 +50,7 @@ def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = 
         raise FileNotFoundError(f"no such checkpoint: {path}")
     try:
         data = torch.load(path, map_location=map_location, weights_only=False)
-    except (pickle.UnpicklingError, EOFError, RuntimeError) as e:  # not a torch file, or a truncated one
+    except Exception as e:  # noqa: BLE001 - whatever torch.load fails with (pickle, zip, text), the file is no checkpoint
         raise ValueError(f"{path} is not a neuralbokeh checkpoint (torch.load: {' '.join(str(e).split())[:200]})") from e
     if not isinstance(data, dict) or data.get("format") != FORMAT:
         raise ValueError(f"{path} is not a neuralbokeh checkpoint")

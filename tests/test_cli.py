@@ -49,6 +49,26 @@ def test_export_evaluate_composite_and_data_tools_mistakes(tmp_path):
     _one_error_line(_run("-m", "data_tools.raw", str(tmp_path / "nostack"), "--out", str(tmp_path / "o")), "nostack")
 
 
+def test_files_that_are_no_model_and_impossible_options_get_one_line(busy_checkpoint, busy_onnx, tiny_dataset, tmp_path):
+    """Empty, truncated and foreign files given as a model or a checkpoint, an opset no onnx knows
+    and a zero output size: one line naming the file or the value, no traceback."""
+    empty, cut = tmp_path / "empty.onnx", tmp_path / "cut.onnx"
+    empty.write_bytes(b"")
+    cut.write_bytes(busy_onnx.read_bytes()[:300])
+    garbage = tmp_path / "garbage.pt"
+    garbage.write_text("garbage")
+    plate = ("--plate", "p.exr", "--render", "r.exr", "--depth", "d.exr", "--alpha", "a.exr", "--focus", "2")
+    for model in (empty, cut, busy_checkpoint):
+        _one_error_line(_run("-m", "neuralbokeh.runtime.composite", "--model", str(model), *plate, "--out", str(tmp_path / "c.exr")),
+                        str(model), "is not an ONNX model")
+    _one_error_line(_run("-m", "neuralbokeh.evaluation", "--data", str(tiny_dataset), "--models", str(cut), "--out", str(tmp_path / "r")),
+                    str(cut), "is not an ONNX model")
+    _one_error_line(_run("export.py", str(garbage), "--out", str(tmp_path / "m.onnx")), str(garbage), "not a neuralbokeh checkpoint")
+    _one_error_line(_run("export.py", str(busy_checkpoint), "--opset", "99", "--out", str(tmp_path / "m.onnx")), "opset", "99")
+    _one_error_line(_run("-m", "data_tools.raw", str(tmp_path), "--out", str(tmp_path / "o"), "--size", "0", "0"), "--size", "0 0")
+    assert not (tmp_path / "m.onnx").exists() and not (tmp_path / "c.exr").exists()
+
+
 def test_evaluate_refuses_a_model_of_another_size(busy_onnx, tmp_path):
     from data_tools.synth import main as synth
 

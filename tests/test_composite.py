@@ -127,3 +127,62 @@ def test_demo_inputs_composite_end_to_end(busy_onnx, tiny_dataset, tmp_path, cap
     assert main(["--model", str(busy_onnx), *args, "--threads", "1", "--clamp-coc"]) == 0
     comp, plate = read_image(tmp_path / "demo" / "comp.exr"), read_image(tmp_path / "demo" / "plate.exr")
     assert np.isfinite(comp).all() and not np.array_equal(comp, plate)
+
+
+def _write_layers(path, channels: dict[str, np.ndarray]) -> None:
+    write_image(path, np.stack(list(channels.values()), axis=-1), channel_names=list(channels))
+
+
+def test_blender_and_nuke_layered_exrs_composite_as_separate_files(busy_onnx, tmp_path):
+    """A Blender multi-layer EXR (``ViewLayer.Combined.R..A``, ``ViewLayer.Depth.Z``, plus a
+    normal pass) and a Nuke ``rgba`` + ``depth.Z`` file, each given as render, depth and alpha
+    at once, composite exactly as the same images in separate files; the same RGBA file as
+    render and alpha gives each its own channels (they were cached by path)."""
+    m = OnnxBokeh(busy_onnx, threads=1)
+    plate, render, depth, alpha = _inputs(m)
+    write_image(tmp_path / "plate.exr", plate)
+    separate = {"render": render, "depth": depth, "alpha": alpha}
+    for name, img in separate.items():
+        write_image(tmp_path / f"{name}.exr", img)
+    rgb = {c: render[..., i] for i, c in enumerate("RGB")}
+    _write_layers(tmp_path / "blender.exr", {**{f"ViewLayer.Combined.{c}": v for c, v in rgb.items()},
+                                            "ViewLayer.Combined.A": alpha, "ViewLayer.Depth.Z": depth,
+                                            "ViewLayer.Normal.X": depth * 0 + 0.5})
+    _write_layers(tmp_path / "nuke.exr", {**rgb, "A": alpha, "depth.Z": depth})
+    common = ["--model", str(busy_onnx), "--plate", str(tmp_path / "plate.exr"), "--focus", "2.0", "--threads", "1"]
+
+    def comp(out: str, render_src: str, depth_src: str, alpha_src: str) -> np.ndarray:
+        assert main(common + ["--render", render_src, "--depth", depth_src, "--alpha", alpha_src,
+                              "--out", str(tmp_path / out)]) == 0
+        return read_image(tmp_path / out)
+
+    want = comp("separate.exr", *(str(tmp_path / f"{n}.exr") for n in separate))
+    for name in ("blender.exr", "nuke.exr"):
+        np.testing.assert_array_equal(comp(f"from_{name}", *[str(tmp_path / name)] * 3), want)
+    named = comp("named.exr", f"{tmp_path / 'blender.exr'}:ViewLayer.Combined", f"{tmp_path / 'blender.exr'}:ViewLayer.Depth.Z",
+                 f"{tmp_path / 'blender.exr'}:ViewLayer.Combined.A")
+    np.testing.assert_array_equal(named, want)
+    assert float(np.abs(want - plate).max()) > 0.01  # something was composited
+
+
+def test_ambiguous_channels_are_refused_with_the_file_s_channels(busy_onnx, tmp_path):
+    from neuralbokeh.runtime.channels import pick_channels, split_source
+
+    m = OnnxBokeh(busy_onnx, threads=1)
+    plate, render, depth, alpha = _inputs(m)
+    for name, img in (("plate", plate), ("render", render), ("alpha", alpha)):
+        write_image(tmp_path / f"{name}.exr", img)
+    five = {**{c: render[..., i] for i, c in enumerate("RGB")}, "A": alpha, "Y": depth}
+    _write_layers(tmp_path / "five.exr", five)
+    args = ["--model", str(busy_onnx), "--plate", str(tmp_path / "plate.exr"), "--render", str(tmp_path / "render.exr"),
+            "--alpha", str(tmp_path / "alpha.exr"), "--focus", "2.0", "--out", str(tmp_path / "c.exr")]
+    with pytest.raises(SystemExit, match=r"which channels are the depth \(Z\)\?.*its channels: R, G, B, (A, Y|Y, A)$"):
+        main(args + ["--depth", str(tmp_path / "five.exr")])  # R is not read as depth
+    with pytest.raises(SystemExit, match="no depth .* named 'depth.Z'"):
+        main(args + ["--depth", f"{tmp_path / 'five.exr'}:depth.Z"])
+    assert main(args + ["--depth", f"{tmp_path / 'five.exr'}:Y"]) == 0
+    assert split_source(r"C:\shots\a.exr") == (r"C:\shots\a.exr", None)
+    assert split_source("a.exr:depth.Z") == ("a.exr", "depth.Z")
+    two = ["A.Combined.R", "A.Combined.G", "A.Combined.B", "B.Combined.R", "B.Combined.G", "B.Combined.B"]
+    with pytest.raises(ValueError, match="one of the layers A.Combined, B.Combined"):
+        pick_channels(two, "rgb")

@@ -15,7 +15,7 @@ from neuralbokeh.export.exporter import calibration_inputs, export_checkpoint, p
 from neuralbokeh.export.graph import GraphBuilder
 from neuralbokeh.core.contract import Contract
 from neuralbokeh.core.normalization import Normalization
-from neuralbokeh.export.lens_graph import (HIDDEN_JUMP_PX, LENS_DEFAULT_KERNELS, _conv_rows, _hidden_background, _Nodes,
+from neuralbokeh.export.lens_graph import (LENS_DEFAULT_KERNELS, _conv_rows, _hidden_background, _Nodes,
                                           _window_max)
 from neuralbokeh.export.lowrank import cheaper_ranks, factorize, parse_kernels, reconstruct, relative_error
 from neuralbokeh.checkpoint import load_model
@@ -98,8 +98,8 @@ def test_export_cli_prints_parity_and_fails_over_tolerance(busy_checkpoint, tmp_
     assert r.returncode != 0 and "tolerance" in r.stderr and not bad.exists()
     assert not list(tmp_path.glob(".*tmp"))
     r = subprocess.run([sys.executable, str(ROOT / "export.py"), str(busy_checkpoint), "--out", str(bad),
-                        "--opset", "13"], capture_output=True, text=True, cwd=ROOT)
-    assert r.returncode != 0 and "opset >= 18" in r.stderr  # the lens graph's Col2Im
+                        "--opset", "17"], capture_output=True, text=True, cwd=ROOT)
+    assert r.returncode != 0 and "opset must be at least 18 for the lens network's operators, got 17" in r.stderr
 
 
 def test_lowrank_export_matches_its_reference_and_approximates_the_model(busy_paper_checkpoint, tmp_path):
@@ -189,7 +189,8 @@ def test_graph_fill_is_the_hidden_background(h, w, c_max):
     coc[1, :, : h // 4] = c_max * 0.8  # and a far band in image 1
     contract = Contract(h, w, norm, c_max, c_max)
     g = _Nodes(GraphBuilder(), "g")
-    out = _hidden_background(g, "x", contract)
+    radius = int(np.ceil(c_max / 2))
+    out = _hidden_background(g, "x", contract, radius)
     graph = helper.make_graph(g.nodes, "fill", [helper.make_tensor_value_info("x", TensorProto.FLOAT, [2, 4, h, w])],
                               [helper.make_tensor_value_info(out, TensorProto.FLOAT, None)], g.b.initializers)
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)])
@@ -197,7 +198,7 @@ def test_graph_fill_is_the_hidden_background(h, w, c_max):
     x = torch.cat([norm.encode(rgb), coc / c_max], 1).float().numpy()
     got = make_session(model.SerializeToString(), threads=1).run(None, {"x": x})[0]
     want = hidden_background(norm.decode(torch.from_numpy(x[:, :3]).double()), torch.from_numpy(x[:, 3:]).double() * c_max,
-                             HIDDEN_JUMP_PX, radius_px=int(np.ceil(c_max / 2)))
+                             radius_px=radius)
     assert h * w == 1 or float((want - rgb).abs().max()) > 0.1  # the occluders were filled
     np.testing.assert_allclose(got, want.numpy(), rtol=1e-5, atol=1e-5 * float(rgb.max()))
 

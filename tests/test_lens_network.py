@@ -6,7 +6,8 @@ import torch
 
 from neuralbokeh.core.apertures import ApertureModel, Disk
 from neuralbokeh.core.contract import Contract
-from neuralbokeh.networks.lens import band_diameters, band_gates, band_scales, bucket_weights, reduce_kernel
+from neuralbokeh.core.bands import band_diameters
+from neuralbokeh.networks.lens import band_gates, band_scales, bucket_weights, reduce_kernel
 from neuralbokeh.networks import ModelConfig, build_model
 from neuralbokeh.core.normalization import Normalization
 from neuralbokeh.render import scatter_defocus, scatter_layers
@@ -240,7 +241,7 @@ def test_a_frame_plans_the_bands_it_needs_and_skipping_stays_exact():
         n_own = m.last_convolutions
         planned_full = m(x, plan_coc_px=C_MAX)
         n_full = m.last_convolutions
-    assert m.plan(C_MAX / 3)[0] == 2 and m.plan(C_MAX)[0] == 6  # bands 1..2 of the lattice d_n = 1 + 2n
+    assert m.plan(C_MAX / 3).blocks == 2 and m.plan(C_MAX).blocks == 6  # bands 1..2 of the lattice d_n = 1 + 2n
     assert n_own == n_full  # the same bands run: the lattice is the frame's, not the plan's
     assert torch.allclose(own, planned_full, atol=1e-6)
 
@@ -254,7 +255,7 @@ def test_a_coc_twice_the_trained_maximum_is_the_pupil_scaled():
     m = build_model(ModelConfig(blocks=6, tile=40, overlap=20, pupil_init="disk"), Contract(80, 80, NORM, C_MAX, C_MAX)).eval()
     out = _run(m, img, coc)[0, 1] - NORM.decode(NORM.encode(torch.zeros(())))
     ref = scatter_defocus(img, coc, ApertureModel(Disk()))[0, 1]
-    assert m.plan(d)[0] == 13
+    assert m.plan(d).blocks == 13
     assert float(out.sum()) == pytest.approx(1000.0, rel=1e-3)  # flux kept
     assert float((out - ref).abs().sum()) < 0.05 * 1000.0  # the disk at its own diameter
 

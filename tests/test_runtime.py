@@ -134,7 +134,7 @@ def test_bands_no_pixel_of_a_tile_uses_are_left_out_exactly(busy_onnx, busy_chec
 def test_active_bands_hold_every_band_the_network_uses(busy_onnx, busy_checkpoint):
     """The runtime's band flags (numpy, float64) cover the PyTorch model's own test (float32), at
     band centres and edges too, where the two could round differently."""
-    from neuralbokeh.networks.lens import _gate, band_diameters, band_position
+    from neuralbokeh.networks.lens import _gate
     from neuralbokeh.ops.tiles import tile
 
     m = OnnxBokeh(busy_onnx, threads=1)
@@ -142,13 +142,13 @@ def test_active_bands_hold_every_band_the_network_uses(busy_onnx, busy_checkpoin
     cfg = model.config
     c_max = float(model.contract.coc_scale_px)
     layout = model.layout(m.height, m.width)
-    d = band_diameters(c_max, cfg.blocks)
+    d = m.plan.diameters
     g = np.random.default_rng(8)
     levels = np.concatenate([d, (d[1:] + d[:-1]) / 2, d + 1e-7, d - 1e-7, [0.0, 0.5]])
     coc = g.choice(levels, (2, m.height, m.width)) * g.choice([-1.0, 1.0], (2, m.height, m.width))
     flags = m.active_bands(coc)
     c = tile(torch.from_numpy(coc[:, None] / c_max).float(), layout) * c_max  # (B, T, win, win)
-    pos = band_position(c, c_max, cfg.blocks)
+    pos = model.plan(c_max).position(c)
     src = model.source_masks(layout, c.device, c.dtype)
     for n in range(1, cfg.blocks + 1):
         for side, sel in enumerate((c > 0, c < 0)):

@@ -72,6 +72,8 @@ def main(argv: list[str] | None = None) -> int:
             raise SystemExit(f"error: --white-balance R,G,B must be numbers, got {args.white_balance!r}") from None
     if args.focus_distances and args.focus_diopters:
         raise SystemExit("error: give --focus-distances or --focus-diopters, not both")
+    if args.size and min(args.size) < 1:
+        raise SystemExit(f"error: --size W H must be at least 1 px each, got {args.size[0]} {args.size[1]}")
     try:
         parse_transfer(args.transfer)
     except ValueError as e:

@@ -156,7 +156,27 @@ def write_image(
     return path
 
 
-def read_image(path: str | os.PathLike, with_attributes: bool = False, rows: tuple[int, int] | None = None) -> Any:
+def image_channels(path: str | os.PathLike) -> list[str]:
+    """The channel names of an image file's first part (``["R", "G", "B", "A", "depth.Z"]``).
+
+    Raises:
+        FileNotFoundError: no such file.
+        OSError: OpenImageIO cannot read it.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no such image file: {path}")
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise OSError(f"cannot read {path}: {oiio.geterror()}")
+    try:
+        return list(inp.spec().channelnames)
+    finally:
+        inp.close()
+
+
+def read_image(path: str | os.PathLike, with_attributes: bool = False, rows: tuple[int, int] | None = None,
+               channels: list[str] | None = None) -> Any:
     """Read an image as float32 ``(H, W, C)`` (integer files scaled to [0, 1] by OpenImageIO).
 
     Args:
@@ -164,6 +184,7 @@ def read_image(path: str | os.PathLike, with_attributes: bool = False, rows: tup
         with_attributes: also return the header metadata as a dict.
         rows: ``(r0, r1)``: read only these scanlines (``(r1 - r0, W, C)``; an EXR decodes
             only the blocks holding them: a training crop costs its rows, not the frame).
+        channels: the channels to return, by name, in this order (default: all of them).
 
     Returns:
         The array, or ``(array, attributes)``.
@@ -190,9 +211,15 @@ def read_image(path: str | os.PathLike, with_attributes: bool = False, rows: tup
         if arr is None:
             raise OSError(f"cannot read {path}: {inp.geterror()}")
         attrs = {a.name: a.value for a in spec.extra_attribs} if with_attributes else None
+        names = list(spec.channelnames)
     finally:
         inp.close()
     arr = np.asarray(arr, dtype=np.float32).reshape(r1 - r0, spec.width, spec.nchannels)
+    if channels is not None:
+        missing = [c for c in channels if c not in names]
+        if missing:
+            raise ValueError(f"{path} has no channel {missing[0]!r}; its channels: {', '.join(names)}")
+        arr = np.ascontiguousarray(arr[:, :, [names.index(c) for c in channels]])
     return (arr, attrs) if with_attributes else arr
 
 

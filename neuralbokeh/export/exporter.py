@@ -14,13 +14,14 @@ import numpy as np
 import onnx
 import onnxruntime as ort
 import torch
+from tqdm import tqdm
 
 from .. import __version__
 from ..checkpoint import load_model
 from ..core.io import atomic_write
 from ..core.normalization import Normalization
 from ..core.optics import SensorWindow
-from ..networks.lens import LensBokeh, band_plan, band_scales, reduce_kernel
+from ..networks.lens import LensBokeh, band_scales, reduce_kernel
 from ..networks.paper import PaperBokeh
 from ..runtime.onnx_model import FORMAT, FORMAT_VERSION, METADATA_KEY, make_session
 from .graph import build_graph
@@ -168,10 +169,10 @@ def plate_model(model: LensBokeh, size: tuple[int, int] | None = None, max_coc_p
     if max_coc_px is not None and not (np.isfinite(max_coc_px) and max_coc_px > 0):
         raise ValueError(f"max_coc_px must be a finite number of px > 0, got {max_coc_px!r}")
     height, width = size or model.contract.size
-    n, c_plan = band_plan(float(max_coc_px if max_coc_px is not None else model.contract.max_coc_px), model.step_px)
+    plan = model.plan(float(max_coc_px if max_coc_px is not None else model.contract.max_coc_px))
     contract = dataclasses.replace(model.contract, image_height=int(height), image_width=int(width),
-                                   coc_scale_px=max(c_plan, 1.0), max_coc_px=c_plan)
-    plate = LensBokeh(dataclasses.replace(model.config, blocks=n), contract)
+                                   coc_scale_px=max(plan.c_plan_px, 1.0), max_coc_px=plan.c_plan_px)
+    plate = LensBokeh(dataclasses.replace(model.config, blocks=plan.blocks), contract)
     plate.load_state_dict(model.state_dict())
     return plate.eval()
 
@@ -187,6 +188,7 @@ def export_checkpoint(
     size: tuple[int, int] | None = None,
     window: SensorWindow | None = None,
     max_coc_px: float | None = None,
+    progress: bool = False,
 ) -> dict[str, Any]:
     """Export a checkpoint to ONNX, check it against PyTorch, then move it into place.
 
@@ -209,6 +211,7 @@ def export_checkpoint(
             the tiles' pupils in the field and is the runtime's default window.
         max_coc_px: lens network: the largest |CoC| (px) the file renders (default: the
             trained maximum; beyond it the learned pupil is scaled).
+        progress: a tqdm bar over the build, the load and each parity case (the CLI's).
 
     Returns:
         A report: ``parity`` (max abs error per probe case, against the PyTorch function
@@ -220,25 +223,33 @@ def export_checkpoint(
         ValueError: bad options, or a parity error above ``tolerance`` (nothing is written).
     """
     tolerance = DEFAULT_TOLERANCE[fp16] if tolerance is None else tolerance
+    newest = onnx.defs.onnx_opset_version()
+    if opset is not None and not 17 <= opset <= newest:  # before the checkpoint is read
+        raise ValueError(f"opset must be from 17 (18 for the lens network) to {newest} (the newest this onnx "
+                         f"{onnx.__version__} knows), got {opset}")
     model, ckpt = load_model(checkpoint)
     lens = model.config.architecture == "lens"
     if not lens and (size or window or max_coc_px):
         raise ValueError("size, window and max_coc_px need the lens network: the paper's network renders its trained "
                          f"size {model.contract.size[1]}x{model.contract.size[0]} px only")
-    opset = (18 if lens else 17) if opset is None else opset
+    lowest = 18 if lens else 17
+    opset = lowest if opset is None else opset
+    if opset < lowest:
+        raise ValueError(f"opset must be at least {lowest} for the {'lens' if lens else 'paper'} network's operators, got {opset}")
     window = window or SensorWindow()
     window_t = torch.tensor([[window.left, window.top, window.width, window.height]])
     if lens:  # per-band kernels rasterised from the learned pupils, direct or on coarser grids
         model = plate_model(model, size, max_coc_px)
         kernels = LENS_DEFAULT_KERNELS if kernels is None else kernels
         spec = parse_lens_kernels(kernels)
-        _, diameters = model.plan(model.contract.max_coc_px)
+        plan = model.plan(model.contract.max_coc_px)
+        diameters = plan.diameters
         scales = band_scales(diameters, spec.min_px)
         factors = {}
         kernel_report = {f"band{n}": {"k": model.kernel_size(n), "rank": 0, "scale": scales[n]}
                          for n in range(1, model.config.blocks + 1)}
     else:
-        kernels = DEFAULT_KERNELS if kernels is None else kernels
+        kernels, plan = DEFAULT_KERNELS if kernels is None else kernels, None
         factors, kernel_report = plan_factors(model, kernels)
         weights = {k: v.detach().numpy() for k, v in model.state_dict().items()}
     cfg = model.config
@@ -247,6 +258,7 @@ def export_checkpoint(
         "format": FORMAT, "format_version": FORMAT_VERSION, "package_version": __version__,
         "model_config": cfg.to_dict(), "contract": model.contract.to_dict(), "layout": list(layout),
         "sensor_window": window.to_dict(), "trained_max_coc_px": float(ckpt["contract"]["max_coc_px"]),
+        "band_plan": plan.to_dict() if plan else None,
         "kernels": kernels, "kernel_ranks": {k: v["rank"] for k, v in kernel_report.items()},
         "fp16": fp16, "opset": opset, "source_checkpoint": Path(checkpoint).name,
         "trained_steps": ckpt.get("step"),
@@ -254,15 +266,20 @@ def export_checkpoint(
                        if ckpt.get("train_config") else None),
     }
     props = {METADATA_KEY: json.dumps(meta, sort_keys=True)}
+    probes = probe_inputs(*model.contract.size)
+    bar = tqdm(total=2 + len(probes), desc="export: graph", unit="step", disable=not progress)
     if lens:
         with torch.no_grad():
             pupils = model.tile_pupils(layout, *model.contract.size, window_t)[0]
             band_kernels = {n: reduce_kernel(model.kernels(n, pupils, float(diameters[n])).double(), scales[n]).numpy()
                             for n in range(1, cfg.blocks + 1)}
-        onnx_model = build_lens_graph(band_kernels, diameters, cfg, model.contract, fp16, opset, props, scales, spec.rows)
+        onnx_model = build_lens_graph(band_kernels, plan, cfg, model.contract, fp16, opset, props, scales, spec.rows)
     else:
         onnx_model = build_graph(weights, cfg, model.contract, factors, fp16, opset, props)
+    bar.update()
+    bar.set_description("export: onnxruntime load")
     sess = make_session(onnx_model.SerializeToString(), threads)
+    bar.update()
     if lens:
         approximate = any(s > 1 for s in scales.values())
 
@@ -277,7 +294,8 @@ def export_checkpoint(
         trained = model
     parity, approx = {}, {}
     with torch.no_grad():
-        for name, (aif, coc) in probe_inputs(*model.contract.size).items():
+        for name, (aif, coc) in probes.items():
+            bar.set_description(f"export: parity {name}")
             got = run_session(sess, aif, coc)
             x = torch.from_numpy(np.concatenate([aif, coc], axis=1))
             want = reference(x).numpy()
@@ -285,6 +303,8 @@ def export_checkpoint(
                 raise ValueError(f"ONNX output is not finite on the {name!r} probe")
             parity[name] = float(np.abs(got - want).max())
             approx[name] = float(np.abs(want - trained(x).numpy()).max()) if approximate else 0.0
+            bar.update()
+    bar.close()
     worst = max(parity.values())
     log.info("parity (max abs, normalised): %s; low-rank approximation: %s", parity, approx)
     if worst > tolerance:

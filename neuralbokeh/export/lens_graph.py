@@ -1,5 +1,10 @@
 """The ONNX graph of the lens architecture (:mod:`neuralbokeh.networks.lens`), from its kernels (onnx + numpy).
 
+Built op by op rather than traced from the module: the traced graphs are slower (README,
+"Where the lens maths lives"; ``benchmarks/bench_traced_export.py``). Its rules come from the module's own
+definitions: the band plan (:class:`~neuralbokeh.core.bands.BandPlan`: lattice, band position,
+the fill's reach) and the fill's ``ops.holes.JUMP_PX``.
+
 Named inputs ``aif``, ``coc``, ``tile_active`` (as the paper network's graph, ``graph.py``) and
 ``band_active`` ``(tiles, N, 2)`` bool; output ``defocus``. The learned pupils are rasterised
 once, at export, into each block's per-channel ``(2n + 1)^2`` kernels; the graph holds those.
@@ -7,8 +12,8 @@ once, at export, into each block's per-channel ``(2n + 1)^2`` kernels; the graph
 Per tile (an ONNX ``If`` on ``tile_active``; an inactive tile passes its core through as
 in-focus light): decode to linear light, the in-focus band, then per band and side an ``If``
 on ``band_active[tile, n - 1, side]`` (the runtime proves from the frame's CoC map which bands
-a tile's pixels use; a band that does not run returns an empty tensor, so it costs nothing
-downstream either): the band's hat gate, a grouped convolution of (colour x gate, gate) by
+a tile's pixels use, :func:`neuralbokeh.core.bands.active_bands` with the plan stored in the
+file; a band that does not run returns an empty tensor, so it costs nothing downstream either): the band's hat gate, a grouped convolution of (colour x gate, gate) by
 the band's kernels (ONNX ``Conv`` correlates: the point-spread functions are stored
 point-reflected), and the near / same-surface / far bucket weights at full resolution.
 
@@ -34,7 +39,6 @@ gates, buckets and the composite stay float32.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 from typing import Any, NamedTuple
 
@@ -42,17 +46,18 @@ import numpy as np
 import onnx
 from onnx import TensorProto, helper
 
+from ..core.bands import POINT_PX, BandPlan
 from ..core.contract import Contract
 from ..core.normalization import Normalization
 from ..core.tiling import pyramid_levels
 from ..networks.config import ModelConfig
+from ..ops.holes import JUMP_PX
 from .graph import GraphBuilder, finish_model
 
 _EPS = 1e-8
 # Bands whose CoC stays >= 10 coarse px wide on a 2, 4 or 8 times coarser grid are convolved there
 # (benchmarks/bench_runtime.py measures the speed and the error against the direct export).
 LENS_DEFAULT_KERNELS = "multires:10"
-HIDDEN_JUMP_PX = 4.0  # as neuralbokeh.ops.holes.hidden_background's default
 
 
 class LensKernels(NamedTuple):
@@ -108,9 +113,9 @@ def _branch(g: _Nodes, result: str, name: str) -> onnx.GraphProto:
     return helper.make_graph(g.nodes, name, [], [_out(final)], g.b.initializers)
 
 
-def _hidden_background(top: _Nodes, x: str, contract: Contract) -> str:
+def _hidden_background(top: _Nodes, x: str, contract: Contract, r: int) -> str:
     """``(B, 3, H, W)`` linear estimate of what foregrounds hide, as ``LensBokeh.hidden``:
-    occluders by a separable max over ``2R + 1`` px (``R`` = half the largest CoC), then the
+    occluders by a separable max over ``2r + 1`` px (``r``: the plan's ``fill_radius_px``), then the
     pull-push fill of :func:`neuralbokeh.ops.holes.push_pull_fill` on the zero-padded
     ``2^L`` square (``AveragePool`` 2x2, ``Resize`` x2 half-pixel), whose level 0 is never
     padded nor upsampled beyond the image (the same values, ~2x less work at 1080p)."""
@@ -118,11 +123,10 @@ def _hidden_background(top: _Nodes, x: str, contract: Contract) -> str:
     _, rgb = _linear_rgb(top, x, contract.normalization)
     coc = top.op("Mul", top.op("Slice", x, top.c("bg.s3", [3], np.int64), top.c("bg.s4", [4], np.int64), top.c("bg.ax1", [1], np.int64)),
                  top.c("bg.coc_scale", float(contract.coc_scale_px)))
-    r = int(math.ceil(float(contract.coc_scale_px) / 2.0))
     if r == 0:
         return rgb  # nothing can hide anything: the fill is the AIF itself
     far = _window_max(top, _window_max(top, coc, r, 3, w), r, 2, h)  # rows, then columns (as ops.holes.occluders)
-    hide = top.op("Less", coc, top.op("Sub", far, top.c("bg.jump", HIDDEN_JUMP_PX)))
+    hide = top.op("Less", coc, top.op("Sub", far, top.c("bg.jump", JUMP_PX)))
     keep = top.op("Cast", top.op("Not", hide), to=TensorProto.FLOAT)
     # the pyramid of push_pull_fill on the zero-padded 2^L square, with level 0 left unpadded:
     # its 2x2 means over the padding are 0 with weight 0, as padding level 1 with zeros gives
@@ -254,25 +258,24 @@ def _band(b: GraphBuilder, k: int, n: int, side: int, pos: str, side_mask: str, 
 
 
 def _tile(b: GraphBuilder, k: int, window: str, kernels: Mapping[int, np.ndarray], scales: Mapping[int, int], src: np.ndarray,
-          cfg: ModelConfig, contract: Contract, diameters: np.ndarray, fp16: bool, rows: bool) -> onnx.GraphProto:
+          cfg: ModelConfig, contract: Contract, plan: BandPlan, fp16: bool, rows: bool) -> onnx.GraphProto:
     """Then-branch: tile ``k``'s accumulators ``(B, 3, 6, win, win)``, flattened to ``(1, B 18 win^2)``,
     from the outer ``window``; band ``n``, side ``s`` runs where ``band_active[k, n - 1, s]``. A
     band that does not run gives an empty ``(0, B, 3, 6, win, win)``, so the sum over the bands
     costs only the bands that ran."""
     g = _Nodes(GraphBuilder(b.count), f"t{k}")
-    c_max, blocks = float(contract.coc_scale_px), int(cfg.blocks)
+    blocks, diameters = plan.blocks, plan.diameters
     win = src.shape[-1]
     _, rgb = _linear_rgb(g, window, contract.normalization)
     coc_in = g.op("Slice", window, g.c("s3", [3], np.int64), g.c("s4", [4], np.int64), g.c("ax1", [1], np.int64))
     one = g.c("one", 1.0)
-    c = g.op("Mul", coc_in, g.c("c_max", c_max))
+    c = g.op("Mul", coc_in, g.c("c_max", float(contract.coc_scale_px)))
     src_mask = g.c("src", src[None, None])
-    step = (max(c_max, 1.0) - 1.0) / max(blocks, 1)
-    if blocks == 0 or step <= 0:
+    if blocks == 0:
         g0, pos = src_mask, None
-    else:
-        shifted = g.op("Max", g.op("Sub", g.op("Abs", c), one), g.c("zero", 0.0))
-        pos = g.op("Min", g.op("Mul", shifted, g.c("inv_step", 1.0 / step)), g.c("n_max", float(blocks)))
+    else:  # BandPlan.position, op for op
+        shifted = g.op("Max", g.op("Sub", g.op("Abs", c), g.c("point", POINT_PX)), g.c("zero", 0.0))
+        pos = g.op("Min", g.op("Mul", shifted, g.c("inv_step", 1.0 / plan.step_px)), g.c("n_max", float(blocks)))
         g0 = g.op("Mul", g.op("Relu", g.op("Sub", one, pos)), src_mask)
     zeros6 = g.op("Mul", g.op("Concat", rgb, rgb, axis=1), g.c("zero", 0.0))
     base = g.op("Reshape", g.op("Concat", zeros6, g.op("Mul", rgb, g0), g0, g0, g0, zeros6, axis=1),
@@ -313,7 +316,7 @@ def _passthrough(b: GraphBuilder, k: int, window: str, src: np.ndarray, norm: No
     return _branch(g, g.op("Reshape", parts, g.c("flat", [1, -1], np.int64)), f"t{k}_pass")
 
 
-def build_lens_graph(kernels: Mapping[int, np.ndarray], diameters: np.ndarray, cfg: ModelConfig, contract: Contract,
+def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: ModelConfig, contract: Contract,
                      fp16: bool = False, opset: int = 18, metadata: Mapping[str, str] | None = None,
                      scales: Mapping[int, int] | None = None, rows: bool = False) -> onnx.ModelProto:
     """The full-image ONNX model of a ``LensBokeh``.
@@ -322,7 +325,8 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], diameters: np.ndarray, c
         kernels: ``{n: (tiles, 2, 3, k, k)}`` point-spread functions of block n (side 0 behind,
             1 in front), as ``LensBokeh.kernels`` returns them for the plate's tiles, or binned by
             ``reduce_kernel`` for the bands that ``scales`` reduces.
-        diameters: ``(N + 1,)`` band centres in px (``LensBokeh.plan``).
+        plan: the bands (their lattice and centres, how a CoC falls in them) and the fill's
+            reach, as ``LensBokeh.plan`` gives them for the plate's largest CoC.
         cfg, contract: the network's config and data contract (its tile grid, normalisation
             and CoC scale).
         fp16: float16 convolutions. opset: >= 18 (``Col2Im``). metadata: ``metadata_props``.
@@ -349,7 +353,7 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], diameters: np.ndarray, c
                         b.const(f"t{k}.ends", [r + win, c + win], np.int64), b.const("axes_hw", [2, 3], np.int64))
         cond = top.op("Gather", "tile_active", b.const(f"t{k}.index", k, np.int64))
         tile_kernels = {n: kernels[n][k] for n in kernels}
-        then = _tile(b, k, window, tile_kernels, scales, source_masks[k], cfg, contract, diameters, fp16, rows)
+        then = _tile(b, k, window, tile_kernels, scales, source_masks[k], cfg, contract, plan, fp16, rows)
         b.count += 10_000  # branch-local names stay unique across branches
         other = _passthrough(b, k, window, source_masks[k], contract.normalization)
         b.count += 10_000
@@ -376,12 +380,14 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], diameters: np.ndarray, c
         taken = got if taken is None else top.op("Add", taken, got)
     if cfg.fill == "background":
         hole = top.op("Max", top.op("Sub", one, taken), zero)
-        linear = top.op("Max", top.op("Add", out, top.op("Mul", hole, _hidden_background(top, x, contract))), zero)
+        linear = top.op("Max", top.op("Add", out, top.op("Mul", hole, _hidden_background(top, x, contract, plan.fill_radius_px))), zero)
     else:
         linear = top.op("Max", top.op("Div", out, top.op("Max", taken, eps)), zero)
     shifted = top.op("Add", linear, b.const("offset", float(contract.normalization.offset)))
     scale = b.const("scale", float(contract.normalization.scale))
     top.nodes.append(helper.make_node("Div", [top.op("Sub", shifted, scale), top.op("Add", shifted, scale)], ["defocus"],
                                       name="encode"))
-    extra = [helper.make_tensor_value_info("band_active", TensorProto.BOOL, [n_t, max(int(cfg.blocks), 1), 2])]
+    if plan.blocks != cfg.blocks:
+        raise ValueError(f"the plan has {plan.blocks} bands, the network {cfg.blocks}")
+    extra = [helper.make_tensor_value_info("band_active", TensorProto.BOOL, [n_t, max(plan.blocks, 1), 2])]
     return finish_model(top.nodes, b.initializers, "neuralbokeh_lens", (h, w), n_t, opset, metadata, extra)

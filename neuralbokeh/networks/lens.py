@@ -26,7 +26,7 @@ The skeleton of the paper, given what a lens blur is made of:
    bands by hat functions of ``|c|``: band 0 is ``|c| <= 1`` px (in focus: a point), band
    ``n`` is centred at ``d_n = 1 + n step`` px, a lattice fixed by the training data (``step =
    (c_max - 1) / N`` for its largest CoC ``c_max`` and N blocks, so ``d_n <= 2n + 1``). A frame
-   runs the bands up to the first whose centre reaches its own largest |CoC| (:func:`band_plan`):
+   runs the bands up to the first whose centre reaches its own largest |CoC| (:meth:`LensBokeh.plan`, :mod:`neuralbokeh.core.bands`):
    a frame with a third of the range runs a third of the bands, one beyond the trained range
    runs more, with the pupil scaled to their diameters. Features of band ``n`` = (colour x gate, gate), for each side.
 4. *Residual blocks R_1..R_N.* Block ``n`` scatters its band with per-channel kernels of size
@@ -70,6 +70,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from ..core.apertures import Aperture, Disk, Gaussian, aperture_from_dict
+from ..core.bands import BandPlan, lattice_step
 from ..core.checks import check_finite
 from ..core.contract import Contract
 from ..ops.fftconv import next_fast_len
@@ -86,33 +87,18 @@ SUPERSAMPLE = 4  # pupil samples per kernel pixel side (anti-aliasing)
 _EPS = 1e-8
 
 
-def band_diameters(c_max: float, blocks: int) -> np.ndarray:
-    """Centres ``d_0 = 0, d_n = 1 + n (c_max - 1) / N`` (px) of the CoC bands, ``(N + 1,)``."""
-    d = 1.0 + np.arange(blocks + 1) * (max(c_max, 1.0) - 1.0) / max(blocks, 1)
-    d[0] = 0.0
-    return d
-
-
-def band_position(coc_px: torch.Tensor, c_max: float, blocks: int) -> torch.Tensor:
-    """Continuous band index in ``[0, N]`` of each pixel's ``|c|``: 0 up to 1 px (a point),
-    ``n`` at ``d_n``, linear in between; ``|c|`` above ``c_max`` stays at N."""
-    step = (max(c_max, 1.0) - 1.0) / max(blocks, 1)
-    if blocks == 0 or step <= 0:  # every CoC is <= 1 px: only the in-focus band
-        return torch.zeros_like(coc_px)
-    return ((coc_px.abs() - 1.0).clamp_min(0.0) / step).clamp(max=float(blocks))
-
-
 def _gate(pos: torch.Tensor, n: int) -> torch.Tensor:
     return (1.0 - (pos - n).abs()).clamp_min(0.0)
 
 
 def band_gates(coc_px: torch.Tensor, c_max: float, blocks: int) -> torch.Tensor:
-    """Hat weights of every band at each pixel: ``(..., N + 1)``, summing to 1.
+    """Hat weights of every band at each pixel: ``(..., N + 1)``, summing to 1, for ``blocks``
+    bands up to ``c_max`` px.
 
     Band 0 takes ``|c| <= 1`` px whole (a point); between band centres the weight is linear in
-    ``|c|`` (:func:`band_position`).
+    ``|c|`` (:meth:`~neuralbokeh.core.bands.BandPlan.position`).
     """
-    pos = band_position(coc_px, c_max, blocks)
+    pos = BandPlan(lattice_step(c_max, blocks), blocks, 0).position(coc_px)
     return torch.stack([_gate(pos, n) for n in range(blocks + 1)], dim=-1)
 
 
@@ -201,15 +187,6 @@ def _scatter(feats: torch.Tensor, kern: torch.Tensor, which: torch.Tensor, s: in
     return out
 
 
-def band_plan(coc_px: float, step_px: float) -> tuple[int, float]:
-    """Bands a frame whose largest |CoC| is ``coc_px`` needs on the lattice ``d_n = 1 + n step``:
-    ``(N, d_N)``, the fewest bands whose last centre reaches ``coc_px`` (0 bands up to 1 px)."""
-    if coc_px <= 1.0 or step_px <= 0:
-        return 0, 1.0
-    n = max(1, math.ceil((coc_px - 1.0) / step_px - 1e-6))
-    return n, 1.0 + n * step_px
-
-
 def field_positions(layout: TileLayout, height: int, width: int, window: torch.Tensor) -> torch.Tensor:
     """The sensor position of each tile's core centre, ``(B, tiles, 2)`` as ``(x, y)`` in [-1, 1]
     (the whole sensor's left/top edge at -1), for images of ``height x width`` px lying on the
@@ -242,7 +219,7 @@ class LensBokeh(nn.Module):
         cfg = config
         c_train = max(float(contract.coc_scale_px), 1.0)
         # the band lattice: N bands over the training range (d_N = c_train, d_n <= 2n + 1)
-        self.step_px = (c_train - 1.0) / cfg.blocks if cfg.blocks > 0 else 2.0
+        self.step_px = lattice_step(c_train, cfg.blocks)
         prior = prior_transmission(_prior_shape(cfg, contract.aperture), cfg.pupil_size)
         logits = np.log(np.maximum(prior, PUPIL_FLOOR))
         # log-transmissions (side [behind, in front], channel, P, P): one lens-wide pupil, plus a
@@ -264,11 +241,10 @@ class LensBokeh(nn.Module):
         """The tile grid over an ``height x width`` frame."""
         return self.config.layout(height, width)
 
-    def plan(self, coc_px: float) -> tuple[int, np.ndarray]:
-        """``(N, diameters)`` of a frame whose largest |CoC| is ``coc_px``: its bands on the
-        lattice (:func:`band_plan`) and their centres ``(N + 1,)`` px (:func:`band_diameters`)."""
-        n, c_plan = band_plan(coc_px, self.step_px)
-        return n, band_diameters(c_plan, n)
+    def plan(self, coc_px: float) -> BandPlan:
+        """The plan of a frame whose largest |CoC| is ``coc_px`` (px): its bands on the lattice
+        and the reach of its fill (:meth:`~neuralbokeh.core.bands.BandPlan.for_frame`)."""
+        return BandPlan.for_frame(coc_px, self.step_px, float(self.contract.coc_scale_px))
 
     def source_masks(self, layout: TileLayout, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
         """``(tiles, 1, win, win)``: 1 on the pixels whose light a tile scatters."""
@@ -353,13 +329,14 @@ class LensBokeh(nn.Module):
             raise ValueError(f"window must have shape ({b}, 4) or (1, 4): (left, top, width, height), got {tuple(window.shape)}")
         layout = self.layout(height, width)
         n_t = layout.num_tiles
-        blocks, diameters = self.plan(self.frame_coc(x, plan_coc_px))
+        plan = self.plan(self.frame_coc(x, plan_coc_px))
+        blocks, diameters = plan.blocks, plan.diameters
         xt = tile(x, layout)
         win = xt.shape[-1]
         xt = xt.view(b, n_t, 4, win, win)
         rgb = self.contract.normalization.decode(xt[:, :, :3])  # linear light
         coc = xt[:, :, 3] * float(self.contract.coc_scale_px)  # (B, T, win, win) signed px
-        pos = band_position(coc, float(diameters[-1]), blocks)  # continuous band index
+        pos = plan.position(coc)  # continuous band index
         src = self.source_masks(layout, x.device, x.dtype)[None]  # (1, T, 1, win, win)
         active = torch.ones(n_t, dtype=torch.bool, device=x.device) if tile_active is None else tile_active.to(x.device)
         # band 0 (in focus): a point, lands where it is, in the receiver's own bucket
@@ -405,13 +382,11 @@ class LensBokeh(nn.Module):
 
     def hidden(self, x: torch.Tensor, plan_coc_px: float | None = None) -> torch.Tensor:
         """Linear ``(B, 3, H, W)`` estimate of what foregrounds hide in the input ``(B, 4, H, W)``
-        (:func:`neuralbokeh.ops.holes.hidden_background`, occluders looked for within half the
-        largest CoC of the trained range, or of the frame's plan where that reaches further: a
-        frame within the trained range gets the same fill whatever its plan)."""
-        _, c_plan = band_plan(self.frame_coc(x, plan_coc_px), self.step_px)
-        c_scale = float(self.contract.coc_scale_px)
-        return hidden_background(self.contract.normalization.decode(x[:, :3]), x[:, 3:] * c_scale,
-                                 radius_px=math.ceil(max(c_plan, c_scale) / 2.0))
+        (:func:`neuralbokeh.ops.holes.hidden_background`, occluders looked for within the plan's
+        ``fill_radius_px``)."""
+        radius = self.plan(self.frame_coc(x, plan_coc_px)).fill_radius_px
+        return hidden_background(self.contract.normalization.decode(x[:, :3]), x[:, 3:] * float(self.contract.coc_scale_px),
+                                 radius_px=radius)
 
     def composite(self, acc: torch.Tensor, background: torch.Tensor | None = None) -> torch.Tensor:
         """Buckets ``(B, 3, 6, H, W)`` -> linear RGB ``(B, 3, H, W)``: near over same over far,

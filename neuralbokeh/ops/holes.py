@@ -25,8 +25,10 @@ import torch.nn.functional as F
 from ..core.checks import check_nonnegative, check_positive, check_shape
 from ..core.tiling import pyramid_levels
 
+JUMP_PX = 4.0  # the least signed-CoC step (px) that counts as a depth discontinuity
 
-def occluders(coc: torch.Tensor, radius_px: int, jump_px: float = 4.0) -> torch.Tensor:
+
+def occluders(coc: torch.Tensor, radius_px: int, jump_px: float = JUMP_PX) -> torch.Tensor:
     """``(B, 1, H, W)`` signed CoC (px) -> ``(B, 1, H, W)`` bool: in front of a farther pixel.
 
     A pixel is an occluder when its signed CoC is more than ``jump_px`` below the largest
@@ -82,7 +84,7 @@ def _pull_push(image: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
     return weight * image + (1.0 - weight) * up
 
 
-def hidden_background(aif: torch.Tensor, coc: torch.Tensor, jump_px: float = 4.0, radius_px: int | None = None) -> torch.Tensor:
+def hidden_background(aif: torch.Tensor, coc: torch.Tensor, jump_px: float = JUMP_PX, radius_px: int | None = None) -> torch.Tensor:
     """The AIF with every occluder (:func:`occluders`) replaced by the visible background around
     it (:func:`push_pull_fill`).
 

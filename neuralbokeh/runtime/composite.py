@@ -10,8 +10,12 @@ over the plate with it, in linear light: ``out = a * model(render) + (1 - a) * p
 
 Files: EXR and float TIFF are taken as linear. 8/16-bit PNG/TIFF inputs tagged sRGB are
 linearised (OpenImageIO's colour conversion) and a PNG output is sRGB-encoded; values above 1
-cannot go into a PNG and are an error unless ``--clip-ldr`` says to clip them. Depth and alpha use
-their first channel (alpha: the A channel of an RGBA file).
+cannot go into a PNG and are an error unless ``--clip-ldr`` says to clip them. Channels and
+layers: any input may name them, ``shot.exr:ViewLayer.Combined`` (a layer) or
+``shot.exr:depth.Z`` (a channel); without a name the colour is ``R G B``, the depth ``Z`` or
+``depth.Z`` and the alpha ``A``, or the one layer that has them (Blender's
+``ViewLayer.Combined``, ``ViewLayer.Depth.Z``), or a depth or alpha file's only channel
+(:mod:`neuralbokeh.runtime.channels`). A file that leaves the choice open is refused.
 
 Sequences: put ``%04d`` (any printf integer pattern) in any path and give ``--frames 1-48``;
 paths without a pattern are used for every frame (a static plate, say). A focus pull is a CSV
@@ -33,8 +37,9 @@ import OpenImageIO as oiio
 from tqdm import tqdm
 
 from ..core.cli import HelpFormatter, run_cli
-from ..core.io import prepare_output, read_image, write_image
+from ..core.io import image_channels, prepare_output, read_image, write_image
 from ..core.optics import SensorWindow
+from .channels import pick_channels, split_source
 from .masks import erode, gaussian_blur
 from .onnx_model import OnnxBokeh
 
@@ -72,15 +77,16 @@ def _convert(arr: np.ndarray, src: str, dst: str) -> np.ndarray:
     return out.get_pixels(oiio.FLOAT).reshape(arr.shape)
 
 
-def read_linear(path: Path, channels: str) -> np.ndarray:
-    """``channels`` ``"rgb"`` -> ``(H, W, 3)`` linear; ``"one"`` -> ``(H, W)`` (alpha: the A channel)."""
-    img = read_image(path)
-    if channels == "rgb":
-        if img.shape[2] < 3:
-            raise ValueError(f"{path}: expected an RGB(A) image, got {img.shape[2]} channel(s)")
-        rgb = img[:, :, :3]
-        return _convert(rgb, "sRGB", "linear") if _is_ldr_srgb(path) else rgb
-    return img[:, :, 3] if img.shape[2] == 4 else img[:, :, 0]
+def read_linear(source: str | Path, kind: str) -> np.ndarray:
+    """The channels of ``kind`` in ``source`` (``path`` or ``path:NAME``, see
+    :func:`~neuralbokeh.runtime.channels.pick_channels`): ``"rgb"`` -> ``(H, W, 3)`` linear
+    (sRGB-tagged 8/16-bit files linearised); ``"depth"`` or ``"alpha"`` -> ``(H, W)``."""
+    name, selector = split_source(str(source))
+    path = Path(name)
+    img = read_image(path, channels=pick_channels(image_channels(path), kind, selector, str(path)))
+    if kind == "rgb":
+        return _convert(img, "sRGB", "linear") if _is_ldr_srgb(path) else img
+    return img[:, :, 0]
 
 
 def write_output(path: Path, rgb: np.ndarray, clip_ldr: bool) -> None:
@@ -149,10 +155,13 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m neuralbokeh.runtime.composite", description=__doc__,
                                 formatter_class=HelpFormatter)
     p.add_argument("--model", required=True, help="ONNX model written by export.py")
-    p.add_argument("--plate", required=True, help="the photograph (background), linear RGB")
-    p.add_argument("--render", required=True, help="all-in-focus CG render, linear RGB")
-    p.add_argument("--depth", required=True, help="the render's planar depth in metres (inf allowed)")
-    p.add_argument("--alpha", required=True, help="the render's object mask in [0, 1]")
+    p.add_argument("--plate", required=True, help="the photograph (background), linear RGB; FILE or FILE:LAYER")
+    p.add_argument("--render", required=True, help="all-in-focus CG render, linear RGB; FILE or FILE:LAYER "
+                                                  "(e.g. render.exr:ViewLayer.Combined)")
+    p.add_argument("--depth", required=True, help="the render's planar depth in metres (inf allowed); FILE or FILE:CHANNEL "
+                                                 "(default channel Z, depth.Z or the file's only one)")
+    p.add_argument("--alpha", required=True, help="the render's object mask in [0, 1]; FILE or FILE:CHANNEL "
+                                                 "(default channel A or the file's only one)")
     focus = p.add_mutually_exclusive_group(required=True)
     focus.add_argument("--focus", type=float, help="focus distance in metres")
     focus.add_argument("--focus-curve", type=Path, help="CSV of frame,focus_m (a focus pull)")
@@ -168,6 +177,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--clamp-coc", action="store_true", help="clamp CoCs beyond the model's range (warns) instead of failing")
     p.add_argument("--clip-ldr", action="store_true", help="clip values outside [0, 1] when writing PNG")
     p.add_argument("--no-skip", action="store_true", help="run the network on in-focus tiles too")
+    p.add_argument("--graph-optimization", choices=("auto", "off", "basic", "all"), default="auto",
+                   help="onnxruntime's graph optimisation: off loads the model fastest, basic or all may render a "
+                        "little faster; auto: off for one frame (a render-farm task), basic for a sequence")
     p.add_argument("-v", "--verbose", action="store_true", help="tracebacks with errors")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stdout)
@@ -182,7 +194,8 @@ def main(argv: list[str] | None = None) -> int:
         else:
             frames = [None]
         outputs = [_frame_path(args.out, frame) for frame in frames]
-        inputs = {_frame_path(a, f).resolve() for a in (args.plate, args.render, args.depth, args.alpha) for f in frames}
+        inputs = {_frame_path(split_source(a)[0], f).resolve() for a in (args.plate, args.render, args.depth, args.alpha)
+                  for f in frames}
         for out in outputs:  # before any frame is rendered
             if out.resolve() in inputs:
                 raise ValueError(f"--out {out} is one of the inputs: it would be overwritten; choose another output")
@@ -191,21 +204,22 @@ def main(argv: list[str] | None = None) -> int:
         if curve is not None and frames == [None]:
             raise ValueError("--focus-curve needs --frames")
         window = SensorWindow(*args.sensor_window) if args.sensor_window else None
-        model = OnnxBokeh(args.model, threads=args.threads, skip_in_focus=not args.no_skip)
-        static: dict[str, np.ndarray] = {}
+        level = args.graph_optimization if args.graph_optimization != "auto" else "off" if len(frames) == 1 else "basic"
+        model = OnnxBokeh(args.model, threads=args.threads, skip_in_focus=not args.no_skip, optimization=level)
+        static: dict[tuple[str, str], np.ndarray] = {}  # inputs without a frame pattern, read once per use
 
-        def load(arg: str, frame: int | None, channels: str) -> np.ndarray:
-            if not _PATTERN.search(arg) and arg in static:
-                return static[arg]
-            img = read_linear(_frame_path(arg, frame), channels)
+        def load(arg: str, frame: int | None, kind: str) -> np.ndarray:
+            if not _PATTERN.search(arg) and (arg, kind) in static:
+                return static[arg, kind]
+            img = read_linear(str(_frame_path(arg, frame)), kind)
             if not _PATTERN.search(arg):
-                static[arg] = img
+                static[arg, kind] = img
             return img
 
         for frame in tqdm(frames, desc="composite", unit="frame", disable=len(frames) < 2):
             focus_m = args.focus if curve is None else focus_at(curve, frame)
             comp = composite_frame(model, load(args.plate, frame, "rgb"), load(args.render, frame, "rgb"),
-                                   load(args.depth, frame, "one"), load(args.alpha, frame, "one"), focus_m,
+                                   load(args.depth, frame, "depth"), load(args.alpha, frame, "alpha"), focus_m,
                                    args.erode, args.feather, args.clamp_coc, window)
             out = _frame_path(args.out, frame)
             write_output(out, comp, args.clip_ldr)

@@ -15,7 +15,8 @@ Leaving out what a scene does not need: a tile whose |CoC| stays below ``in_focu
 independently, so the window is the tile's entire receptive field) returns its input
 without running the network. In a lens model (``model.architecture = "lens"``), the CoC
 bands and sides of the focus plane that no pixel of a tile scatters are not computed either
-(``band_active``, proved from the frame's CoC map: a frame whose largest CoC is a third of
+(``band_active``, proved from the frame's CoC map by :func:`neuralbokeh.core.bands.active_bands`
+with the plan the file carries: a frame whose largest CoC is a third of
 the model's runs only a third of the bands), and a tile whose core scatters no band (every
 |CoC| there <= 1 px: points) is passed through whatever its window holds, since a lens tile
 scatters its own core only. All three are exact: tiles and bands that run give what the full
@@ -26,6 +27,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import warnings
 from pathlib import Path
 from typing import Any
@@ -33,6 +35,7 @@ from typing import Any
 import numpy as np
 import onnxruntime as ort
 
+from ..core.bands import BandPlan, active_bands, lattice_step
 from ..core.checks import check_at_least, check_finite, format_location
 from ..core.contract import Contract
 from ..core.optics import SensorWindow
@@ -45,20 +48,40 @@ FORMAT = "neuralbokeh-onnx"
 FORMAT_VERSION = 2  # 2: "contract" and "model_config" (1: the contract as loose keys, read and upgraded)
 
 
-def make_session(path_or_bytes: str | bytes, threads: int | None = None) -> ort.InferenceSession:
+# onnxruntime's graph optimisation levels by their names here
+OPTIMIZATION = {"all": ort.GraphOptimizationLevel.ORT_ENABLE_ALL, "basic": ort.GraphOptimizationLevel.ORT_ENABLE_BASIC,
+                "off": ort.GraphOptimizationLevel.ORT_DISABLE_ALL}
+
+
+def make_session(path_or_bytes: str | bytes, threads: int | None = None, optimization: str = "basic") -> ort.InferenceSession:
     """A CPU onnxruntime session (``threads`` intra-op threads; None: onnxruntime's default).
 
-    onnxruntime's memory pattern (one block planned for the whole graph) is off: with a tile
-    and band ``If`` per branch it reserved ~0.8 GB more at 1080p (2.32 against 1.50 GB peak RSS,
-    ``benchmarks/bench_runtime.py``'s frame) for no measurable speed.
+    ``optimization``: onnxruntime's graph optimisation, ``"all"`` (its default), ``"basic"`` or
+    ``"off"``. A lens graph's thousands of ``If`` branches make the load the cost:
+    ``benchmarks/bench_load.py`` measures each level's load and render time (README). onnxruntime's
+    memory pattern (one block planned for the whole graph) is off: with a tile and band ``If``
+    per branch it reserved ~0.8 GB more at 1080p for no measurable speed.
+
+    Raises:
+        ValueError: the file or bytes are no model onnxruntime can load (empty, truncated, not
+            ONNX, an opset it does not know), with its reason in one line; an unknown
+            ``optimization``.
     """
+    if optimization not in OPTIMIZATION:
+        raise ValueError(f"optimization must be one of {', '.join(OPTIMIZATION)}, got {optimization!r}")
     so = ort.SessionOptions()
+    so.graph_optimization_level = OPTIMIZATION[optimization]
     so.enable_mem_pattern = False
     if threads:
         so.intra_op_num_threads = int(threads)
         so.inter_op_num_threads = 1
     so.log_severity_level = 3
-    return ort.InferenceSession(path_or_bytes, so, providers=["CPUExecutionProvider"])
+    try:
+        return ort.InferenceSession(path_or_bytes, so, providers=["CPUExecutionProvider"])
+    except Exception as e:  # noqa: BLE001 - onnxruntime's load errors share no base class but Exception
+        source = path_or_bytes if isinstance(path_or_bytes, str) else "the graph"
+        reason = " ".join(str(e).split()).split("failed:")[-1].strip()
+        raise ValueError(f"{source} is not an ONNX model onnxruntime can load: {reason}") from e
 
 
 def read_metadata(session: ort.InferenceSession, source: str = "model") -> dict[str, Any]:
@@ -88,6 +111,8 @@ class OnnxBokeh:
         threads: onnxruntime intra-op threads (None: onnxruntime's default, all cores).
         skip_in_focus: return in-focus tiles unchanged without running the network.
         in_focus_px: |CoC| in px below which a tile window counts as in focus, >= 0.
+        optimization: onnxruntime's graph optimisation (:func:`make_session`): ``"off"`` loads
+            fastest (one frame per process), ``"basic"`` (default) or ``"all"``.
 
     Raises:
         FileNotFoundError: no such file.
@@ -95,12 +120,12 @@ class OnnxBokeh:
     """
 
     def __init__(self, path: str | Path, threads: int | None = None, skip_in_focus: bool = True,
-                 in_focus_px: float = 0.5) -> None:
+                 in_focus_px: float = 0.5, optimization: str = "basic") -> None:
         path = Path(path)
         if not path.is_file():
             raise FileNotFoundError(f"no such model file: {path}")
         check_at_least("in_focus_px", in_focus_px, 0.0, " px")
-        self.session = make_session(str(path), threads)
+        self.session = make_session(str(path), threads, optimization)
         self.meta = read_metadata(self.session, str(path))
         self.contract = Contract.from_dict(self.meta["contract"])
         self.height, self.width = self.contract.size
@@ -109,6 +134,7 @@ class OnnxBokeh:
         self.window = SensorWindow.from_dict(self.meta.get("sensor_window"))
         self.skip_in_focus, self.in_focus_px = skip_in_focus, float(in_focus_px)
         self.has_bands = "band_active" in {i.name for i in self.session.get_inputs()}
+        self.plan = self._band_plan() if self.has_bands else None
         self.last_tiles_run = 0
         self.last_bands_run = 0  # (tile, band, side) scatters run by the last call (lens models)
 
@@ -159,36 +185,21 @@ class OnnxBokeh:
         return np.array([padded[r : r + win, c : c + win].max() >= self.in_focus_px for _, r, c in self.layout.origins()],
                         dtype=bool)
 
+    def _band_plan(self) -> BandPlan:
+        """The file's band plan (files exported before it was stored: their N bands over the
+        CoC scale, as the exporter of that version planned them)."""
+        if self.meta.get("band_plan"):
+            return BandPlan.from_dict(self.meta["band_plan"])
+        blocks, c_max = int(self.meta["model_config"]["blocks"]), float(self.contract.coc_scale_px)
+        return BandPlan(lattice_step(c_max, blocks), blocks, math.ceil(c_max / 2.0))
+
     def active_bands(self, coc_px: np.ndarray) -> np.ndarray:
-        """``(tiles, N, 2)`` bool (lens models): whether any pixel that tile ``k`` scatters (its
-        core, out to the window's edge on image-border sides) has a non-zero gate in band
-        ``n = 1..N`` on side ``s`` (0 behind the focus plane, 1 in front), in any image of the
-        batch ``(B, H, W)``. A superset by 1e-3 of a band at the band edges (exact).
-        All true when skipping is off."""
-        blocks, c_max = int(self.meta["model_config"]["blocks"]), self.contract.coc_scale_px
-        flags = np.zeros((self.num_tiles, max(blocks, 1), 2), dtype=bool)
-        step = (max(c_max, 1.0) - 1.0) / max(blocks, 1)
-        if not self.skip_in_focus or blocks == 0 or step <= 0:
-            return np.ones_like(flags) if not self.skip_in_focus else flags
-        c = np.asarray(coc_px, dtype=np.float32)
-        # networks.lens.band_position in numpy (the runtime never imports torch)
-        pos = np.clip((np.abs(c) - 1.0) / step, 0.0, blocks)
-        width = blocks + 2
-        # 2 width: scatters nothing beyond band 0 (|c| <= 1 px gives position 0, where every band's
-        # hat is 0; 1e-4 px of margin for the model's float32 CoC)
-        point = np.abs(c) < 1.0 - 1e-4
-        side = np.where(c < 0, np.int32(width), np.int32(0))
-        side[point] = 2 * width  # (4x faster than a nested np.where at 1080p)
-        # bands lo and lo + 1 around each pixel's band position, and one more where it sits within
-        # 1e-3 of a band centre (float32 rounding in the model): a superset of the non-zero hats
-        lo = side + np.floor(np.maximum(pos - 1e-3, 0.0)).astype(np.int32)
-        hi = side + np.floor(pos + 1e-3).astype(np.int32) + 1
-        for k in range(self.num_tiles):
-            r0, r1, c0, c1 = self.layout.source_region(k, self.height, self.width)
-            seen_lo = np.bincount(lo[:, r0:r1, c0:c1].ravel(), minlength=3 * width)
-            seen = seen_lo + np.roll(seen_lo, 1) + np.bincount(hi[:, r0:r1, c0:c1].ravel(), minlength=3 * width + 1)[: 3 * width]
-            flags[k] = (seen[: 2 * width].reshape(2, width)[:, 1 : blocks + 1] > 0).T
-        return flags
+        """``(tiles, N, 2)`` bool (lens models): the bands and sides each tile's pixels use in
+        the batch ``coc_px`` ``(B, H, W)`` (:func:`neuralbokeh.core.bands.active_bands`, with the
+        file's plan); all true when skipping is off."""
+        if not self.skip_in_focus:
+            return np.ones((self.num_tiles, max(self.plan.blocks, 1), 2), dtype=bool)
+        return active_bands(coc_px, self.plan, self.layout)
 
     def _images(self, aif: np.ndarray) -> tuple[np.ndarray, bool]:
         a = np.asarray(aif)

@@ -1,0 +1,71 @@
+"""The one definition of the lens network's CoC bands (``core.bands``), as the network, the
+exported graph and the runtime all use it."""
+
+import json
+
+import numpy as np
+import onnx
+import torch
+
+from neuralbokeh.checkpoint import load_model
+from neuralbokeh.core.bands import BandPlan, active_bands, band_diameters, lattice_step
+from neuralbokeh.export.exporter import plate_model
+from neuralbokeh.networks.lens import _gate
+from neuralbokeh.runtime import OnnxBokeh
+from neuralbokeh.runtime.onnx_model import METADATA_KEY
+
+
+def test_a_plan_covers_the_frame_with_the_fewest_bands_of_the_lattice():
+    step = lattice_step(13.0, 6)  # d_n = 1 + 2n
+    assert step == 2.0 and BandPlan.for_frame(0.9, step, 13.0).blocks == 0
+    for coc, blocks in ((1.2, 1), (3.0, 1), (3.01, 2), (13.0, 6), (20.0, 10)):
+        plan = BandPlan.for_frame(coc, step, 13.0)
+        assert plan.blocks == blocks and plan.c_plan_px >= coc and plan.c_plan_px - step < coc, coc
+    # the fill reaches half the trained range, or the plan's where that is larger
+    assert BandPlan.for_frame(4.0, step, 13.0).fill_radius_px == 7
+    assert BandPlan.for_frame(20.0, step, 13.0).fill_radius_px == 11
+    np.testing.assert_allclose(BandPlan.for_frame(13.0, step, 13.0).diameters, band_diameters(13.0, 6))
+
+
+def test_numpy_and_torch_read_the_same_band_position():
+    plan = BandPlan.for_frame(13.0, lattice_step(13.0, 6), 13.0)
+    d = plan.diameters
+    c = np.concatenate([d, -d, (d[1:] + d[:-1]) / 2, [0.0, 0.5, 1.0, 40.0, -40.0]])
+    got_np = plan.position(c)
+    got_torch = plan.position(torch.from_numpy(c)).numpy()
+    np.testing.assert_array_equal(got_np, got_torch)
+    np.testing.assert_allclose(got_np[: len(d)], np.arange(len(d)), atol=1e-12)  # band n at its centre
+    assert got_np[-2] == got_np[-1] == 6.0  # beyond d_N: N
+    assert (got_np[-5:-2] == 0.0).all()  # 0, 0.5 and 1 px: a point
+
+
+def test_the_file_carries_the_plate_plan_and_the_runtime_plans_with_it(busy_checkpoint, busy_onnx, tmp_path):
+    """The exported file stores the plate's own plan; the runtime reads it (files exported before
+    it was stored get the same numbers from their contract), and its band flags cover every band
+    the network's gates use, by the same position function."""
+    model, _ = load_model(busy_checkpoint)
+    plate = plate_model(model)
+    want = plate.plan(plate.contract.max_coc_px)
+    m = OnnxBokeh(busy_onnx, threads=1)
+    assert m.plan == want and json.loads(onnx.load(busy_onnx).metadata_props[0].value)["band_plan"] == want.to_dict()
+    legacy = onnx.load(busy_onnx)
+    meta = json.loads(legacy.metadata_props[0].value)
+    del meta["band_plan"]
+    legacy.metadata_props[0].value = json.dumps(meta)
+    onnx.save(legacy, tmp_path / "legacy.onnx")
+    old = OnnxBokeh(tmp_path / "legacy.onnx", threads=1)
+    assert legacy.metadata_props[0].key == METADATA_KEY and old.plan.blocks == want.blocks
+    assert old.plan.fill_radius_px == want.fill_radius_px and abs(old.plan.step_px - want.step_px) < 1e-9
+    g = np.random.default_rng(3)
+    coc = g.uniform(-1.0, 1.0, (1, m.height, m.width)) * want.c_plan_px / 3  # a third of the range,
+    coc[..., : m.width // 2] = 0.0  # and the left half in focus
+    flags = active_bands(coc, want, m.layout)
+    pos = want.position(torch.from_numpy(coc).float())
+    for n in range(1, want.blocks + 1):
+        for k in range(m.num_tiles):
+            r0, r1, c0, c1 = m.layout.source_region(k, m.height, m.width)
+            region = pos[:, r0:r1, c0:c1]
+            for side, sel in enumerate((coc[:, r0:r1, c0:c1] > 0, coc[:, r0:r1, c0:c1] < 0)):
+                used = bool(((_gate(region, n) > 0) & torch.from_numpy(sel)).any())
+                assert flags[k, n - 1, side] >= used, (n, k, side)
+    assert flags.sum() < flags.size  # and something was left out
