@@ -41,21 +41,23 @@ def _inputs(m: OnnxBokeh, seed=0):
 
 def test_cli_composites_in_linear_light(busy_onnx, tmp_path):
     m = OnnxBokeh(busy_onnx, threads=1)
-    plate, render, depth, alpha = _inputs(m)
-    for name, img in (("plate", plate), ("render", render), ("depth", depth), ("alpha", alpha)):
+    plate, render, _, alpha = _inputs(m)
+    depth = np.where(alpha > 0, 1.2, np.inf).astype(np.float32)  # ~2 px in front of the focus, nothing behind
+    premultiplied = render * alpha[:, :, None]
+    for name, img in (("plate", plate), ("render", premultiplied), ("straight", render), ("depth", depth), ("alpha", alpha)):
         write_image(tmp_path / f"{name}.exr", img)
-    rc = main(["--model", str(busy_onnx), "--plate", str(tmp_path / "plate.exr"), "--render", str(tmp_path / "render.exr"),
-               "--depth", str(tmp_path / "depth.exr"), "--alpha", str(tmp_path / "alpha.exr"), "--focus", "2.0",
-               "--out", str(tmp_path / "comp.exr"), "--threads", "1"])
-    assert rc == 0
+    args = ["--model", str(busy_onnx), "--plate", str(tmp_path / "plate.exr"), "--depth", str(tmp_path / "depth.exr"),
+            "--alpha", str(tmp_path / "alpha.exr"), "--focus", "2.0", "--threads", "1"]
+    assert main(args + ["--render", str(tmp_path / "render.exr"), "--out", str(tmp_path / "comp.exr")]) == 0
+    assert main(args + ["--render", str(tmp_path / "straight.exr"), "--straight", "--out", str(tmp_path / "comp2.exr")]) == 0
     comp = read_image(tmp_path / "comp.exr")
-    np.testing.assert_array_equal(comp[:4], plate[:4])  # far from the mask: the plate untouched
-    blurred = m.render(render, depth, 2.0)
-    np.testing.assert_allclose(comp[13:21, 15:25], blurred[13:21, 15:25], rtol=1e-6)  # deep inside: the blurred CG
-    np.testing.assert_allclose(comp, composite_frame(m, plate, render, depth, alpha, 2.0), rtol=1e-6)
-    edge = comp[8, 15]  # on the eroded, feathered border: a mix
-    assert np.all(np.minimum(plate[8, 15], blurred[8, 15]) - 1e-6 <= edge)
-    assert np.all(edge <= np.maximum(plate[8, 15], blurred[8, 15]) + 1e-6)
+    np.testing.assert_allclose(read_image(tmp_path / "comp2.exr"), comp, rtol=1e-6)  # straight, multiplied here
+    np.testing.assert_allclose(comp, composite_frame(m, plate, premultiplied, depth, alpha, 2.0), rtol=1e-6)
+    np.testing.assert_allclose(comp[:2], plate[:2], rtol=1e-6)  # beyond the blur's reach: the plate
+    blurred = m.render(premultiplied, depth, 2.0)
+    np.testing.assert_allclose(comp[14:20, 16:24], blurred[14:20, 16:24], rtol=1e-5)  # deep inside: the blurred CG
+    # just outside the matte (row 7), the blurred CG spills over the plate
+    assert float(np.abs(comp[7, 12:28] - plate[7, 12:28]).max()) > 0.01
 
 
 def test_cli_never_overwrites_without_being_told(busy_onnx, tmp_path):
@@ -186,3 +188,52 @@ def test_ambiguous_channels_are_refused_with_the_file_s_channels(busy_onnx, tmp_
     two = ["A.Combined.R", "A.Combined.G", "A.Combined.B", "B.Combined.R", "B.Combined.G", "B.Combined.B"]
     with pytest.raises(ValueError, match="one of the layers A.Combined, B.Combined"):
         pick_channels(two, "rgb")
+
+
+def test_a_blurred_foreground_over_a_sharp_plate_matches_the_reference_on_the_combined_layers(tmp_path):
+    """A CG square 6 px out of focus in front of an in-focus plate, through an untrained lens
+    network (its 7-blade prior: a CoC-driven scatter), against the reference renderer on the two
+    layers: the blurred render and its blurred alpha composite as the layered scatter does,
+    spill past the matte included; cutting the blur with the sharp matte (the old composite)
+    is far worse."""
+    from neuralbokeh.checkpoint import save_checkpoint
+    from neuralbokeh.core.apertures import ApertureModel, parse_aperture
+    from neuralbokeh.core.contract import Contract
+    from neuralbokeh.core.normalization import Normalization
+    from neuralbokeh.core.optics import ThinLens
+    from neuralbokeh.export.exporter import export_checkpoint
+    from neuralbokeh.networks import ModelConfig, build_model
+    from neuralbokeh.render import scatter_layers
+
+    h, w, focus, coc = 40, 48, 2.0, 6.0
+    aperture = ApertureModel(parse_aperture("polygon:7"))
+    probe = ThinLens(50.0, 1.0, 36.0)
+    lens = ThinLens(50.0, float(abs(probe.coc_px(1.0, focus, w, signed=True))) / coc, 36.0)
+    cfg = ModelConfig(blocks=4, tile=16, overlap=8, architecture="lens", pupil_init="aperture")
+    contract = Contract(h, w, Normalization(0.18), 8.0, 8.0, lens, aperture.to_dict())
+    torch.manual_seed(0)
+    save_checkpoint(tmp_path / "prior.pt", {"model_config": cfg.to_dict(), "contract": contract.to_dict(),
+                                            "model_state": build_model(cfg, contract).state_dict(), "step": 0})
+    export_checkpoint(tmp_path / "prior.pt", tmp_path / "prior.onnx", kernels="direct", threads=1)
+    m = OnnxBokeh(tmp_path / "prior.onnx", threads=1)
+    g = np.random.default_rng(4)
+    plate = (0.18 * np.exp2(g.uniform(-2, 2, (h, w, 3)))).astype(np.float32)
+    alpha = np.zeros((h, w), np.float32)
+    alpha[12:28, 14:34] = 1.0
+    colour = np.array([2.0, 1.0, 0.3], np.float32)
+    premultiplied = colour * alpha[:, :, None]
+    depth = np.where(alpha > 0, 1.0, np.inf).astype(np.float32)
+    c_cg = float(lens.coc_px(1.0, focus, w, signed=True))
+    ref = scatter_layers(torch.from_numpy(np.stack([plate, premultiplied])).permute(0, 3, 1, 2).double(),
+                         torch.from_numpy(np.stack([np.ones_like(alpha), alpha]))[:, None].double(), [0.0, c_cg],
+                         aperture, fill_holes=False).permute(1, 2, 0).numpy()
+    comp = composite_frame(m, plate, premultiplied, depth, alpha, focus)
+    matte = gaussian_blur(erode(alpha, 1), 1.0)[:, :, None]  # the old composite: the blur cut by the sharp matte
+    cut = matte * m.render(premultiplied, depth, focus) + (1.0 - matte) * plate
+    ring = (gaussian_blur(alpha, 3.0) > 0.02) & (alpha == 0)  # outside the matte, within the blur's reach
+
+    def rms(a, where):
+        return float(np.sqrt(np.mean((a - ref)[where] ** 2)))
+
+    assert rms(comp, ring) < 0.2 * rms(cut, ring), (rms(comp, ring), rms(cut, ring))
+    assert rms(comp, np.ones_like(ring)) < 0.02 * float(colour.max())

@@ -3,10 +3,12 @@
     python -m neuralbokeh.runtime.composite --model lens.onnx --plate photo.exr --render cg.exr \\
         --depth cg_depth.exr --alpha cg_alpha.exr --focus 2.5 --out comp.exr
 
-The all-in-focus render (pinhole camera with the real camera's intrinsics) is defocused by the
-model with the CoC from its depth (planar, metres) and the focus distance; the object mask is
-eroded (``--erode`` px) and Gaussian-smoothed (``--feather`` px) and the blurred render is put
-over the plate with it, in linear light: ``out = a * model(render) + (1 - a) * plate``.
+The all-in-focus render (pinhole camera with the real camera's intrinsics) and its alpha are
+defocused by the model with the CoC from the render's depth (planar, metres) and the focus
+distance, the same kernels for both, and the blurred render is put over the plate in linear
+light: ``out = model(a c) + (1 - model(a)) * plate``, ``a c`` the premultiplied render (the EXR
+convention; ``--straight`` for a render that is not). A blurred foreground spreads past its
+matte. ``--erode`` / ``--feather`` (px) shrink and soften a fringed matte before it is blurred.
 
 Files: EXR and float TIFF are taken as linear. 8/16-bit PNG/TIFF inputs tagged sRGB are
 linearised (OpenImageIO's colour conversion) and a PNG output is sRGB-encoded; values above 1
@@ -134,11 +136,18 @@ def focus_at(curve: tuple[np.ndarray, np.ndarray], frame: int) -> float:
 
 
 def composite_frame(model: OnnxBokeh, plate: np.ndarray, render: np.ndarray, depth: np.ndarray, alpha: np.ndarray,
-                    focus_m: float, erode_px: int = 1, feather_px: float = 1.0, clamp_coc: bool = False,
-                    window: SensorWindow | None = None) -> np.ndarray:
-    """One frame: ``a * model(render) + (1 - a) * plate`` in linear light with ``a`` the eroded,
-    smoothed mask. Shapes: plate/render ``(H, W, 3)``, depth/alpha ``(H, W)``; alpha in [0, 1];
-    ``window``: the plate's part of the lens's sensor when it is a crop (default: all of it)."""
+                    focus_m: float, erode_px: int = 0, feather_px: float = 0.0, clamp_coc: bool = False,
+                    window: SensorWindow | None = None, premultiplied: bool = True) -> np.ndarray:
+    """One frame: the render *and its alpha* defocused by the same lens, put over the plate in
+    linear light: ``out = blur(a c) + (1 - blur(a)) plate``. A blurred foreground spreads past
+    its matte, and the plate shows through its blurred edge as much as the light thins there.
+
+    Shapes: plate/render ``(H, W, 3)``, depth/alpha ``(H, W)``; alpha in [0, 1]. ``render``:
+    premultiplied by its alpha (the EXR convention, as Blender and Nuke write it), or straight
+    when ``premultiplied`` is false (then multiplied here). The alpha is eroded (``erode_px``)
+    and smoothed (``feather_px``, Gaussian sigma) before it is blurred, for mattes with
+    fringes. ``window``: the plate's part of the lens's sensor when it is a crop (default: all).
+    """
     for name, img in (("plate", plate), ("render", render)):
         if img.shape != (model.height, model.width, 3):
             raise ValueError(f"{name} must be {model.width}x{model.height} RGB (the model's size), got {img.shape}")
@@ -146,9 +155,15 @@ def composite_frame(model: OnnxBokeh, plate: np.ndarray, render: np.ndarray, dep
         raise ValueError(f"alpha must be {model.width}x{model.height}, got {alpha.shape}")
     if not ((alpha >= 0) & (alpha <= 1)).all():
         raise ValueError(f"alpha must be in [0, 1], got values in [{alpha.min()}, {alpha.max()}]")
-    blurred = model.render(render, depth, focus_m, clamp_coc=clamp_coc, window=window)
-    a = gaussian_blur(erode(alpha.astype(np.float32), erode_px), feather_px)[:, :, None]
-    return (a * blurred + (1.0 - a) * plate).astype(np.float32)
+    a = gaussian_blur(erode(alpha.astype(np.float32), erode_px), feather_px) if erode_px or feather_px else alpha
+    colour = render if premultiplied else render * alpha[:, :, None]
+    if erode_px or feather_px:  # the colour follows the matte it is cut by
+        colour = colour * (a / np.maximum(alpha, 1e-12))[:, :, None]
+    # one batch of two: the light and its coverage, scattered by the same kernels
+    layers = np.stack([colour, np.repeat(a[:, :, None], 3, axis=2)]).astype(np.float32)
+    blurred = model.render(layers, depth, focus_m, clamp_coc=clamp_coc, window=window)
+    cover = np.clip(blurred[1], 0.0, 1.0)  # per channel: a lens with chromatic blur spreads each its own way
+    return (blurred[0] + (1.0 - cover) * plate).astype(np.float32)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -171,8 +186,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--sensor-window", type=float, nargs=4, metavar=("LEFT", "TOP", "WIDTH", "HEIGHT"),
                    help="the plate's part of the lens's sensor, as fractions of its width and height (a crop; "
                         "default: the whole sensor, 0 0 1 1)")
-    p.add_argument("--erode", type=int, default=1, help="mask erosion radius in px (default 1)")
-    p.add_argument("--feather", type=float, default=1.0, help="mask Gaussian sigma in px (default 1.0)")
+    p.add_argument("--straight", action="store_true",
+                   help="the render is not premultiplied by its alpha (default: premultiplied, as EXR renders are)")
+    p.add_argument("--erode", type=int, default=0, help="erode the alpha by this radius in px before it is blurred")
+    p.add_argument("--feather", type=float, default=0.0, help="smooth the alpha by this Gaussian sigma in px before it is blurred")
     p.add_argument("--threads", type=int, default=None, help="onnxruntime threads (default: all cores)")
     p.add_argument("--clamp-coc", action="store_true", help="clamp CoCs beyond the model's range (warns) instead of failing")
     p.add_argument("--clip-ldr", action="store_true", help="clip values outside [0, 1] when writing PNG")
@@ -220,7 +237,7 @@ def main(argv: list[str] | None = None) -> int:
             focus_m = args.focus if curve is None else focus_at(curve, frame)
             comp = composite_frame(model, load(args.plate, frame, "rgb"), load(args.render, frame, "rgb"),
                                    load(args.depth, frame, "depth"), load(args.alpha, frame, "alpha"), focus_m,
-                                   args.erode, args.feather, args.clamp_coc, window)
+                                   args.erode, args.feather, args.clamp_coc, window, not args.straight)
             out = _frame_path(args.out, frame)
             write_output(out, comp, args.clip_ldr)
             log.info("wrote %s (focus %.3f m, %d of %d tiles through the network)", out, focus_m,
