@@ -237,3 +237,33 @@ def test_a_blurred_foreground_over_a_sharp_plate_matches_the_reference_on_the_co
 
     assert rms(comp, ring) < 0.2 * rms(cut, ring), (rms(comp, ring), rms(cut, ring))
     assert rms(comp, np.ones_like(ring)) < 0.02 * float(colour.max())
+
+
+def test_depth_in_other_units_inverse_or_as_a_coc_map_gives_the_same_composite(busy_onnx, tmp_path, caplog):
+    m = OnnxBokeh(busy_onnx, threads=1)
+    plate, render, _, alpha = _inputs(m)
+    depth = np.where(alpha > 0, 1.2, 3.0).astype(np.float32)
+    files = {"plate": plate, "render": render * alpha[:, :, None], "alpha": alpha, "depth": depth, "depth_mm": depth * 1000,
+             "depth_inv": 1.0 / depth, "coc": m.coc_px(depth, 2.0)}
+    for name, img in files.items():
+        write_image(tmp_path / f"{name}.exr", img)
+    base = ["--model", str(busy_onnx), "--plate", str(tmp_path / "plate.exr"), "--render", str(tmp_path / "render.exr"),
+            "--alpha", str(tmp_path / "alpha.exr"), "--threads", "1"]
+
+    def comp(name: str, *extra: str) -> np.ndarray:
+        assert main(base + ["--depth", str(tmp_path / f"{name}.exr"), "--out", str(tmp_path / f"out_{name}.exr"), *extra]) == 0
+        return read_image(tmp_path / f"out_{name}.exr")
+
+    want = comp("depth", "--focus", "2.0")
+    assert "unlikely" not in caplog.text
+    np.testing.assert_allclose(comp("depth_mm", "--focus", "2.0", "--depth-unit", "mm"), want, rtol=1e-5)
+    np.testing.assert_allclose(comp("depth_inv", "--focus", "2.0", "--depth-math", "inverse"), want, rtol=1e-5)
+    np.testing.assert_allclose(comp("coc", "--depth-math", "coc"), want, rtol=1e-5, atol=1e-6)
+    with pytest.raises(SystemExit, match="leave out --focus"):
+        main(base + ["--depth", str(tmp_path / "coc.exr"), "--depth-math", "coc", "--focus", "2", "--out", str(tmp_path / "x.exr")])
+    with pytest.raises(SystemExit, match="give --focus"):
+        main(base + ["--depth", str(tmp_path / "depth.exr"), "--out", str(tmp_path / "x.exr")])
+    # millimetres read as metres: one warning that names the likely cause
+    caplog.clear()
+    main(base + ["--depth", str(tmp_path / "depth_mm.exr"), "--focus", "2.0", "--out", str(tmp_path / "x.exr")])
+    assert caplog.text.count("is unlikely for a") == 1 and "--depth-unit" in caplog.text

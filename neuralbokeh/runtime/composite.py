@@ -105,6 +105,46 @@ def write_output(path: Path, rgb: np.ndarray, clip_ldr: bool) -> None:
         write_image(path, rgb, channel_names=["R", "G", "B"])
 
 
+# metres per unit of a depth map (--depth-unit)
+DEPTH_UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254, "ft": 0.3048}
+
+
+def depth_to_metres(values: np.ndarray, unit: str = "m", math: str = "distance", source: str = "depth") -> np.ndarray:
+    """A depth channel as planar depth in metres: ``math`` ``"distance"`` (the distance in
+    ``unit``) or ``"inverse"`` (1 / distance in 1 / ``unit``, 0 at infinity: Nuke's
+    ScanlineRender and ZDefocus's "far = 0").
+
+    Raises:
+        ValueError: an unknown unit or math, or an inverse depth below 0 (``source`` names it).
+    """
+    if unit not in DEPTH_UNITS:
+        raise ValueError(f"depth unit must be one of {', '.join(DEPTH_UNITS)}, got {unit!r}")
+    if math == "inverse":
+        if (values < 0).any():
+            raise ValueError(f"{source}: an inverse depth (1/distance) must be >= 0, got values down to {values.min():g}")
+        with np.errstate(divide="ignore"):
+            values = 1.0 / values.astype(np.float64)
+    elif math != "distance":
+        raise ValueError(f"depth math must be 'distance' or 'inverse', got {math!r}")
+    return (values * DEPTH_UNITS[unit]).astype(np.float32)
+
+
+def warn_if_implausible(depth_m: np.ndarray, focal_length_mm: float, focus_m: float, source: str) -> bool:
+    """Warn once, in one line, when a depth map read as metres is unlikely for the lens and the
+    focus: its finite range nearer than two focal lengths or farther than 10 km, or the focus
+    distance more than 10x outside it (a map in mm or cm, or an inverse one, read as metres).
+    Returns whether it warned."""
+    finite = depth_m[np.isfinite(depth_m) & (depth_m > 0)]
+    if not finite.size:
+        return False
+    near, far = float(finite.min()), float(finite.max())
+    if near >= 2e-3 * focal_length_mm and far <= 1e4 and near / 10.0 <= focus_m <= 10.0 * far:
+        return False
+    log.warning("%s: depth %.4g-%.4g m focused at %.4g m is unlikely for a %g mm lens; is it in another unit (--depth-unit) "
+                "or 1/distance (--depth-math inverse)?", source, near, far, focus_m, focal_length_mm)
+    return True
+
+
 def read_focus_curve(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """CSV ``frame,focus_m`` (header optional) -> sorted ``(frames, focus_m)``."""
     frames, focus = [], []
@@ -136,13 +176,14 @@ def focus_at(curve: tuple[np.ndarray, np.ndarray], frame: int) -> float:
 
 
 def composite_frame(model: OnnxBokeh, plate: np.ndarray, render: np.ndarray, depth: np.ndarray, alpha: np.ndarray,
-                    focus_m: float, erode_px: int = 0, feather_px: float = 0.0, clamp_coc: bool = False,
+                    focus_m: float | None, erode_px: int = 0, feather_px: float = 0.0, clamp_coc: bool = False,
                     window: SensorWindow | None = None, premultiplied: bool = True) -> np.ndarray:
     """One frame: the render *and its alpha* defocused by the same lens, put over the plate in
     linear light: ``out = blur(a c) + (1 - blur(a)) plate``. A blurred foreground spreads past
     its matte, and the plate shows through its blurred edge as much as the light thins there.
 
     Shapes: plate/render ``(H, W, 3)``, depth/alpha ``(H, W)``; alpha in [0, 1]. ``render``:
+    ``focus_m`` None: ``depth`` is the signed CoC map in px already. ``render``:
     premultiplied by its alpha (the EXR convention, as Blender and Nuke write it), or straight
     when ``premultiplied`` is false (then multiplied here). The alpha is eroded (``erode_px``)
     and smoothed (``feather_px``, Gaussian sigma) before it is blurred, for mattes with
@@ -161,7 +202,10 @@ def composite_frame(model: OnnxBokeh, plate: np.ndarray, render: np.ndarray, dep
         colour = colour * (a / np.maximum(alpha, 1e-12))[:, :, None]
     # one batch of two: the light and its coverage, scattered by the same kernels
     layers = np.stack([colour, np.repeat(a[:, :, None], 3, axis=2)]).astype(np.float32)
-    blurred = model.render(layers, depth, focus_m, clamp_coc=clamp_coc, window=window)
+    if focus_m is None:
+        blurred = model.render_coc(layers, depth, clamp_coc=clamp_coc)
+    else:
+        blurred = model.render(layers, depth, focus_m, clamp_coc=clamp_coc, window=window)
     cover = np.clip(blurred[1], 0.0, 1.0)  # per channel: a lens with chromatic blur spreads each its own way
     return (blurred[0] + (1.0 - cover) * plate).astype(np.float32)
 
@@ -177,9 +221,13 @@ def main(argv: list[str] | None = None) -> int:
                                                  "(default channel Z, depth.Z or the file's only one)")
     p.add_argument("--alpha", required=True, help="the render's object mask in [0, 1]; FILE or FILE:CHANNEL "
                                                  "(default channel A or the file's only one)")
-    focus = p.add_mutually_exclusive_group(required=True)
+    focus = p.add_mutually_exclusive_group()
     focus.add_argument("--focus", type=float, help="focus distance in metres")
     focus.add_argument("--focus-curve", type=Path, help="CSV of frame,focus_m (a focus pull)")
+    p.add_argument("--depth-unit", choices=tuple(DEPTH_UNITS), default="m", help="the unit of --depth's distances")
+    p.add_argument("--depth-math", choices=("distance", "inverse", "coc"), default="distance",
+                   help="what --depth holds: the distance, 1/distance (0 at infinity, as Nuke's ScanlineRender and ZDefocus's "
+                        "'far = 0'), or the signed CoC in px already (negative in front; then no --focus)")
     p.add_argument("--out", required=True, help="output file (.exr/.tif linear, .png sRGB)")
     p.add_argument("--overwrite", action="store_true", help="replace existing output files")
     p.add_argument("--frames", help="first-last frame numbers for %%04d patterns, e.g. 1-48")
@@ -217,6 +265,10 @@ def main(argv: list[str] | None = None) -> int:
             if out.resolve() in inputs:
                 raise ValueError(f"--out {out} is one of the inputs: it would be overwritten; choose another output")
             prepare_output(out, args.overwrite)
+        if args.depth_math == "coc" and (args.focus is not None or args.focus_curve):
+            raise ValueError("--depth-math coc takes the CoC from --depth: leave out --focus and --focus-curve")
+        if args.depth_math != "coc" and args.focus is None and not args.focus_curve:
+            raise ValueError("give --focus (m) or --focus-curve, or --depth-math coc with a CoC map as --depth")
         curve = read_focus_curve(args.focus_curve) if args.focus_curve else None
         if curve is not None and frames == [None]:
             raise ValueError("--focus-curve needs --frames")
@@ -224,24 +276,30 @@ def main(argv: list[str] | None = None) -> int:
         level = args.graph_optimization if args.graph_optimization != "auto" else "off" if len(frames) == 1 else "basic"
         model = OnnxBokeh(args.model, threads=args.threads, skip_in_focus=not args.no_skip, optimization=level)
         static: dict[tuple[str, str], np.ndarray] = {}  # inputs without a frame pattern, read once per use
+        warned: list[bool] = []  # the depth range is checked on the first frame
 
         def load(arg: str, frame: int | None, kind: str) -> np.ndarray:
             if not _PATTERN.search(arg) and (arg, kind) in static:
                 return static[arg, kind]
             img = read_linear(str(_frame_path(arg, frame)), kind)
+            if kind == "depth" and args.depth_math != "coc":
+                img = depth_to_metres(img, args.depth_unit, args.depth_math, str(_frame_path(arg, frame)))
             if not _PATTERN.search(arg):
                 static[arg, kind] = img
             return img
 
         for frame in tqdm(frames, desc="composite", unit="frame", disable=len(frames) < 2):
-            focus_m = args.focus if curve is None else focus_at(curve, frame)
+            focus_m = None if args.depth_math == "coc" else args.focus if curve is None else focus_at(curve, frame)
+            depth = load(args.depth, frame, "depth")
+            if not warned and focus_m is not None and model.contract.lens is not None:  # the first frame's
+                warned.append(warn_if_implausible(depth, model.contract.lens.focal_length_mm, focus_m, str(args.depth)))
             comp = composite_frame(model, load(args.plate, frame, "rgb"), load(args.render, frame, "rgb"),
-                                   load(args.depth, frame, "depth"), load(args.alpha, frame, "alpha"), focus_m,
+                                   depth, load(args.alpha, frame, "alpha"), focus_m,
                                    args.erode, args.feather, args.clamp_coc, window, not args.straight)
             out = _frame_path(args.out, frame)
             write_output(out, comp, args.clip_ldr)
-            log.info("wrote %s (focus %.3f m, %d of %d tiles through the network)", out, focus_m,
-                     model.last_tiles_run, model.num_tiles)
+            log.info("wrote %s (%s, %d of %d tiles through the network)", out,
+                     "the CoC map's blur" if focus_m is None else f"focus {focus_m:.3f} m", model.last_tiles_run, model.num_tiles)
     except (FileNotFoundError, ValueError, OSError) as e:
         raise SystemExit(f"error: {e}")
     return 0
