@@ -267,3 +267,30 @@ def test_depth_in_other_units_inverse_or_as_a_coc_map_gives_the_same_composite(b
     caplog.clear()
     main(base + ["--depth", str(tmp_path / "depth_mm.exr"), "--focus", "2.0", "--out", str(tmp_path / "x.exr")])
     assert caplog.text.count("is unlikely for a") == 1 and "--depth-unit" in caplog.text
+
+
+def test_hash_and_houdini_patterns_and_frame_steps(busy_onnx, tmp_path):
+    """``####`` and ``$F4`` name the same files as ``%04d``; ``1001-1005x2`` renders 1001, 1003
+    and 1005 only, each as the printf-pattern run renders it."""
+    from neuralbokeh.runtime.composite import parse_frames
+
+    m = OnnxBokeh(busy_onnx, threads=1)
+    plate, render, depth, alpha = _inputs(m, seed=2)
+    write_image(tmp_path / "plate.exr", plate)
+    write_image(tmp_path / "depth.exr", depth)
+    write_image(tmp_path / "alpha.exr", alpha)
+    for f in range(1001, 1006):
+        write_image(tmp_path / f"render.{f:04d}.exr", render * (f - 1000))
+    base = ["--model", str(busy_onnx), "--plate", str(tmp_path / "plate.exr"), "--depth", str(tmp_path / "depth.exr"),
+            "--alpha", str(tmp_path / "alpha.exr"), "--focus", "2.0", "--threads", "1", "--frames", "1001-1005x2"]
+    assert main(base + ["--render", str(tmp_path / "render.####.exr"), "--out", str(tmp_path / "a" / "c.%04d.exr")]) == 0
+    assert main(base + ["--render", str(tmp_path / "render.$F4.exr"), "--out", str(tmp_path / "b" / "c.####.exr")]) == 0
+    assert sorted(p.name for p in (tmp_path / "a").iterdir()) == ["c.1001.exr", "c.1003.exr", "c.1005.exr"]
+    for f in (1001, 1003, 1005):
+        got = read_image(tmp_path / "a" / f"c.{f}.exr")
+        np.testing.assert_array_equal(got, read_image(tmp_path / "b" / f"c.{f}.exr"))
+        np.testing.assert_allclose(got, composite_frame(m, plate, render * (f - 1000), depth, alpha, 2.0), rtol=1e-6)
+    assert parse_frames("7") == [7] and parse_frames("1-5x2") == [1, 3, 5]
+    for bad in ("5-1", "1-5x0", "1..5", "x2"):
+        with pytest.raises(ValueError, match="--frames must be"):
+            parse_frames(bad)

@@ -19,7 +19,8 @@ layers: any input may name them, ``shot.exr:ViewLayer.Combined`` (a layer) or
 ``ViewLayer.Combined``, ``ViewLayer.Depth.Z``), or a depth or alpha file's only channel
 (:mod:`neuralbokeh.runtime.channels`). A file that leaves the choice open is refused.
 
-Sequences: put ``%04d`` (any printf integer pattern) in any path and give ``--frames 1-48``;
+Sequences: put ``%04d`` (any printf integer pattern), ``####`` (one digit each) or ``$F4``
+(Houdini) in any path and give ``--frames 1-48`` (or ``1001-1100x2``, every second frame);
 paths without a pattern are used for every frame (a static plate, say). A focus pull is a CSV
 ``--focus-curve`` of ``frame,focus_m`` rows, interpolated linearly between keys.
 Every output file is written atomically; a progress bar runs over the frames.
@@ -46,7 +47,17 @@ from .masks import erode, gaussian_blur
 from .onnx_model import OnnxBokeh
 
 log = logging.getLogger(__name__)
-_PATTERN = re.compile(r"%0?\d*d")
+# frame patterns: printf (%04d, %d), Nuke/Blender hashes (####: one digit each), Houdini ($F4, $F)
+_PATTERN = re.compile(r"%0?\d*d|#+|\$F\d?")
+
+
+def _frame_text(token: str, frame: int) -> str:
+    if token.startswith("%"):
+        return token % frame
+    if token.startswith("$F"):
+        return f"{frame:0{int(token[2:] or 1)}d}"
+    return f"{frame:0{len(token)}d}"
+
 _LINEAR_FORMATS = (".exr", ".hdr")
 
 
@@ -54,8 +65,21 @@ def _frame_path(path: str, frame: int | None) -> Path:
     if _PATTERN.search(path):
         if frame is None:
             raise ValueError(f"{path} is a sequence pattern: give --frames")
-        return Path(path % frame)
+        return Path(_PATTERN.sub(lambda m: _frame_text(m.group(0), frame), path))
     return Path(path)
+
+
+def parse_frames(spec: str) -> list[int]:
+    """``"1001-1100"``, ``"1001-1100x2"`` (every second frame) or ``"1001"`` -> the frame numbers.
+
+    Raises:
+        ValueError: anything else, or FIRST > LAST, or a step below 1.
+    """
+    m = re.fullmatch(r"(-?\d+)(?:-(-?\d+)(?:x(\d+))?)?", spec.strip())
+    if not m or (m.group(2) and int(m.group(1)) > int(m.group(2))) or (m.group(3) and int(m.group(3)) < 1):
+        raise ValueError(f"--frames must be FIRST, FIRST-LAST or FIRST-LASTxSTEP with FIRST <= LAST and STEP >= 1, got {spec!r}")
+    first = int(m.group(1))
+    return list(range(first, int(m.group(2) or first) + 1, int(m.group(3) or 1)))
 
 
 def _is_ldr_srgb(path: Path) -> bool:
@@ -230,7 +254,8 @@ def main(argv: list[str] | None = None) -> int:
                         "'far = 0'), or the signed CoC in px already (negative in front; then no --focus)")
     p.add_argument("--out", required=True, help="output file (.exr/.tif linear, .png sRGB)")
     p.add_argument("--overwrite", action="store_true", help="replace existing output files")
-    p.add_argument("--frames", help="first-last frame numbers for %%04d patterns, e.g. 1-48")
+    p.add_argument("--frames", help="the frames of sequence patterns (%%04d, ####, $F4 in any path): FIRST, FIRST-LAST or "
+                                    "FIRST-LASTxSTEP, e.g. 1001-1100x2; one command per render-farm chunk")
     p.add_argument("--sensor-window", type=float, nargs=4, metavar=("LEFT", "TOP", "WIDTH", "HEIGHT"),
                    help="the plate's part of the lens's sensor, as fractions of its width and height (a crop; "
                         "default: the whole sensor, 0 0 1 1)")
@@ -250,10 +275,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stdout)
     try:
         if args.frames:
-            m = re.fullmatch(r"(-?\d+)-(-?\d+)", args.frames)
-            if not m or int(m.group(1)) > int(m.group(2)):
-                raise ValueError(f"--frames must be FIRST-LAST with FIRST <= LAST, got {args.frames!r}")
-            frames: list[int | None] = list(range(int(m.group(1)), int(m.group(2)) + 1))
+            frames: list[int | None] = list(parse_frames(args.frames))
             if not _PATTERN.search(args.out):
                 raise ValueError(f"--out {args.out} needs a frame pattern such as %04d when --frames is given")
         else:
