@@ -294,3 +294,64 @@ def test_hash_and_houdini_patterns_and_frame_steps(busy_onnx, tmp_path):
     for bad in ("5-1", "1-5x0", "1..5", "x2"):
         with pytest.raises(ValueError, match="--frames must be"):
             parse_frames(bad)
+
+
+def test_outputs_carry_provenance_and_the_plate_s_timing_half_and_jpeg(busy_onnx, tmp_path):
+    """The EXR output's header names the model (file, SHA-256), the focus and the version and
+    keeps the plate's frame rate and timecode; ``--half`` writes float16; a JPEG is sRGB-encoded
+    (HDR refused without ``--clip-ldr``), never linear values."""
+    import hashlib
+
+    import OpenImageIO as oiio
+
+    m = OnnxBokeh(busy_onnx, threads=1)
+    plate, render, depth, alpha = _inputs(m, seed=3)
+    spec = oiio.ImageSpec(m.width, m.height, 3, oiio.FLOAT)
+    spec.attribute("FramesPerSecond", oiio.TypeRational, (24000, 1001))
+    spec.attribute("smpte:TimeCode", oiio.TypeTimeCode, (0x01020304, 0))
+    out = oiio.ImageOutput.create(str(tmp_path / "plate.exr"))
+    assert out.open(str(tmp_path / "plate.exr"), spec) and out.write_image(plate)
+    out.close()
+    for name, img in (("render", render * alpha[:, :, None]), ("depth", depth), ("alpha", alpha)):
+        write_image(tmp_path / f"{name}.exr", img)
+    args = ["--model", str(busy_onnx), "--plate", str(tmp_path / "plate.exr"), "--render", str(tmp_path / "render.exr"),
+            "--depth", str(tmp_path / "depth.exr"), "--alpha", str(tmp_path / "alpha.exr"), "--focus", "2.0", "--threads", "1"]
+    assert main(args + ["--out", str(tmp_path / "c.exr")]) == 0
+    assert main(args + ["--out", str(tmp_path / "h.exr"), "--half"]) == 0
+    got = oiio.ImageInput.open(str(tmp_path / "c.exr"))
+    head = got.spec()
+    got.close()
+    assert head.getattribute("neuralbokeh:model") == busy_onnx.name
+    assert head.getattribute("neuralbokeh:model_sha256") == hashlib.sha256(busy_onnx.read_bytes()).hexdigest()
+    assert head.getattribute("neuralbokeh:focus_m") == 2.0 and head.getattribute("neuralbokeh:version")
+    assert tuple(head.getattribute("FramesPerSecond")) == (24000, 1001)
+    assert tuple(head.getattribute("smpte:TimeCode"))[0] == 0x01020304
+    half = oiio.ImageInput.open(str(tmp_path / "h.exr"))
+    assert half.spec().format == oiio.HALF
+    half.close()
+    full = read_image(tmp_path / "c.exr")
+    np.testing.assert_allclose(read_image(tmp_path / "h.exr"), full, rtol=1e-3)
+    with pytest.raises(SystemExit, match="float16 EXR files only"):
+        main(args + ["--out", str(tmp_path / "h.png"), "--half"])
+    assert not (tmp_path / "h.png").exists()
+    assert full.max() > 1.0  # the render's highlights reach the composite
+    with pytest.raises(SystemExit, match="cannot be stored in a JPG"):
+        main(args + ["--out", str(tmp_path / "c.jpg")])
+    assert main(args + ["--out", str(tmp_path / "c.jpg"), "--clip-ldr"]) == 0
+    lin = np.clip(full, 0, 1)
+    srgb = np.where(lin <= 0.0031308, 12.92 * lin, 1.055 * lin ** (1 / 2.4) - 0.055)  # IEC 61966-2-1
+    jpg = read_image(tmp_path / "c.jpg")  # per-pixel noise does not survive JPEG; its mean level does
+    assert abs(float(jpg.mean() - srgb.mean())) < 0.01 < abs(float(jpg.mean() - lin.mean())) - 0.05
+
+
+def test_bad_pixels_are_named_as_the_user_knows_them(busy_onnx):
+    m = OnnxBokeh(busy_onnx, threads=1)
+    plate, render, depth, alpha = _inputs(m)
+    bad = render.copy()
+    bad[3, 5, 1] = np.nan
+    with pytest.raises(ValueError, match="the render"):
+        composite_frame(m, plate, bad, depth, alpha, 2.0)
+    bad_plate = plate.copy()
+    bad_plate[2, 2] = -1.0
+    with pytest.raises(ValueError, match="the plate"):
+        composite_frame(m, bad_plate, render, depth, alpha, 2.0)

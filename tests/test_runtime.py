@@ -71,15 +71,21 @@ def test_runtime_errors_name_the_value(busy_onnx):
         OnnxBokeh(busy_onnx.parent / "missing.onnx")
 
 
-def test_clamping_the_coc_is_explicit_and_warns(busy_onnx):
+def test_clamping_the_coc_is_explicit_and_warns_once(busy_onnx, caplog):
     m = OnnxBokeh(busy_onnx, threads=1)
     aif = _scene(m)
     coc = np.full((m.height, m.width), m.contract.max_coc_px * 2.0)
-    with pytest.warns(UserWarning, match="clamped"):
-        out = m.render_coc(aif, coc, clamp_coc=True)
+    with pytest.raises(ValueError, match=r"clamp_coc=True \(--clamp-coc on the command line\)"):
+        m.render_coc(aif, coc)
     with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        np.testing.assert_array_equal(out, m.render_coc(aif, np.full_like(coc, m.contract.max_coc_px)))
+        warnings.simplefilter("error")  # logged, not a Python warning with a source line
+        out = m.render_coc(aif, coc, clamp_coc=True)
+    assert [r.levelname for r in caplog.records if "clamped" in r.getMessage()] == ["WARNING"]
+    caplog.clear()
+    np.testing.assert_array_equal(out, m.render_coc(aif, np.full_like(coc, m.contract.max_coc_px)))
+    assert not caplog.records
+    with pytest.raises(ValueError, match="threads must be a whole number >= 1"):
+        OnnxBokeh(busy_onnx, threads=-4)
 
 
 def test_depth_at_infinity_renders_finite(busy_onnx):

@@ -108,7 +108,8 @@ def write_image(
         path: destination; its folder must exist.
         image: ``(H, W)`` or ``(H, W, C)`` array. Float data is written as given (no clipping);
             for integer pixel types it must already be in the type's range.
-        attributes: extra metadata (strings, ints, floats) stored in the file header.
+        attributes: extra metadata stored in the file header: strings, ints, floats, or
+            ``(TypeDesc, value)`` pairs as :func:`image_attributes` returns them.
         channel_names: e.g. ``["R", "G", "B"]`` or ``["Z"]`` (default: OpenImageIO's).
         pixel_type: one of ``float32``, ``float16``, ``uint8``, ``uint16``.
 
@@ -143,7 +144,10 @@ def write_image(
     if path.suffix.lower() == ".exr":
         spec.attribute("compression", "zip")
     for key, value in (attributes or {}).items():
-        spec.attribute(key, value)
+        if isinstance(value, tuple) and len(value) == 2 and isinstance(value[0], oiio.TypeDesc):
+            spec.attribute(key, value[0], value[1])  # typed, as image_attributes reads them (a timecode, say)
+        else:
+            spec.attribute(key, value)
     with atomic_write(path) as tmp:
         out = oiio.ImageOutput.create(str(tmp))
         if out is None:
@@ -154,6 +158,18 @@ def write_image(
             raise OSError(f"cannot write {path}: {msg}")
         out.close()
     return path
+
+
+def image_attributes(path: str | os.PathLike, names: list[str]) -> dict[str, tuple[Any, Any]]:
+    """The header attributes ``names`` that an image file has, as ``{name: (TypeDesc, value)}``
+    (typed, so that a timecode or a rational frame rate is written back as it was)."""
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise OSError(f"cannot read {path}: {oiio.geterror()}")
+    try:
+        return {a.name: (a.type, a.value) for a in inp.spec().extra_attribs if a.name in names}
+    finally:
+        inp.close()
 
 
 def image_channels(path: str | os.PathLike) -> list[str]:

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import hashlib
 import logging
 import re
 import sys
@@ -39,8 +40,9 @@ import numpy as np
 import OpenImageIO as oiio
 from tqdm import tqdm
 
+from ..core.checks import check_at_least, check_finite
 from ..core.cli import HelpFormatter, run_cli
-from ..core.io import image_channels, prepare_output, read_image, write_image
+from ..core.io import image_attributes, image_channels, prepare_output, read_image, write_image
 from ..core.optics import SensorWindow
 from .channels import pick_channels, split_source
 from .masks import erode, gaussian_blur
@@ -115,18 +117,38 @@ def read_linear(source: str | Path, kind: str) -> np.ndarray:
     return img[:, :, 0]
 
 
-def write_output(path: Path, rgb: np.ndarray, clip_ldr: bool) -> None:
-    """EXR/TIFF: linear float32 RGB. PNG: sRGB-encoded 16-bit (values outside [0, 1] need ``clip_ldr``)."""
-    if path.suffix.lower() == ".png":
+# display-referred outputs: sRGB-encoded integers of this many bits (the rest are linear float)
+_DISPLAY_FORMATS = {".png": 16, ".jpg": 8, ".jpeg": 8}
+# header attributes of the plate a composite keeps (what editorial needs to place the frame)
+PLATE_ATTRIBUTES = ("FramesPerSecond", "smpte:TimeCode", "smpte:KeyCode", "DateTime", "capDate", "utcOffset")
+
+
+def write_output(path: Path, rgb: np.ndarray, clip_ldr: bool, half: bool = False,
+                 attributes: dict | None = None) -> None:
+    """EXR/TIFF: linear RGB, float32 (``half``: float16, EXR only). PNG/JPEG: sRGB-encoded
+    16/8-bit (values outside [0, 1] need ``clip_ldr``). ``attributes``: header metadata."""
+    bits = _DISPLAY_FORMATS.get(path.suffix.lower())
+    if half and path.suffix.lower() != ".exr":
+        raise ValueError(f"--half writes float16 EXR files only, got {path}")
+    if bits:
         over = int((rgb > 1.0).sum() + (rgb < 0.0).sum())
         if over and not clip_ldr:
-            raise ValueError(f"{path}: {over} values outside [0, 1] (max {rgb.max():.3g}) cannot be stored in a PNG; "
-                             "write .exr/.tif or pass --clip-ldr")
-        encoded = _convert(np.clip(rgb, 0.0, 1.0), "linear", "sRGB")
-        write_image(path, np.round(np.clip(encoded, 0.0, 1.0) * 65535).astype(np.uint16), pixel_type="uint16",
-                    channel_names=["R", "G", "B"])
+            raise ValueError(f"{path}: {over} values outside [0, 1] (max {rgb.max():.3g}) cannot be stored in a "
+                             f"{path.suffix.lower()[1:].upper()}; write .exr/.tif or pass --clip-ldr")
+        encoded = np.clip(_convert(np.clip(rgb, 0.0, 1.0), "linear", "sRGB"), 0.0, 1.0)
+        kind = np.uint16 if bits == 16 else np.uint8
+        write_image(path, np.round(encoded * np.iinfo(kind).max).astype(kind), attributes, ["R", "G", "B"], f"uint{bits}")
     else:
-        write_image(path, rgb, channel_names=["R", "G", "B"])
+        write_image(path, rgb, attributes, ["R", "G", "B"], "float16" if half else "float32")
+
+
+def provenance(model_path: str) -> dict[str, str]:
+    """Header attributes that say how a composite was made: the model file, its SHA-256 and
+    the package version (the CLI adds each frame's ``neuralbokeh:focus_m``)."""
+    from .. import __version__
+
+    digest = hashlib.sha256(Path(model_path).read_bytes()).hexdigest()
+    return {"neuralbokeh:model": Path(model_path).name, "neuralbokeh:model_sha256": digest, "neuralbokeh:version": __version__}
 
 
 # metres per unit of a depth map (--depth-unit)
@@ -220,6 +242,9 @@ def composite_frame(model: OnnxBokeh, plate: np.ndarray, render: np.ndarray, dep
         raise ValueError(f"alpha must be {model.width}x{model.height}, got {alpha.shape}")
     if not ((alpha >= 0) & (alpha <= 1)).all():
         raise ValueError(f"alpha must be in [0, 1], got values in [{alpha.min()}, {alpha.max()}]")
+    for name, img in (("the plate", plate), ("the render", render)):  # named as the user knows them
+        check_finite(name, img)
+        check_at_least(name, img, -model.contract.normalization.offset)
     a = gaussian_blur(erode(alpha.astype(np.float32), erode_px), feather_px) if erode_px or feather_px else alpha
     colour = render if premultiplied else render * alpha[:, :, None]
     if erode_px or feather_px:  # the colour follows the matte it is cut by
@@ -252,7 +277,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--depth-math", choices=("distance", "inverse", "coc"), default="distance",
                    help="what --depth holds: the distance, 1/distance (0 at infinity, as Nuke's ScanlineRender and ZDefocus's "
                         "'far = 0'), or the signed CoC in px already (negative in front; then no --focus)")
-    p.add_argument("--out", required=True, help="output file (.exr/.tif linear, .png sRGB)")
+    p.add_argument("--out", required=True, help="output file (.exr/.tif linear float, .png/.jpg sRGB 16/8-bit)")
+    p.add_argument("--half", action="store_true", help="write float16 EXR (default float32)")
     p.add_argument("--overwrite", action="store_true", help="replace existing output files")
     p.add_argument("--frames", help="the frames of sequence patterns (%%04d, ####, $F4 in any path): FIRST, FIRST-LAST or "
                                     "FIRST-LASTxSTEP, e.g. 1001-1100x2; one command per render-farm chunk")
@@ -283,6 +309,8 @@ def main(argv: list[str] | None = None) -> int:
         outputs = [_frame_path(args.out, frame) for frame in frames]
         inputs = {_frame_path(split_source(a)[0], f).resolve() for a in (args.plate, args.render, args.depth, args.alpha)
                   for f in frames}
+        if args.half and Path(args.out).suffix.lower() != ".exr":
+            raise ValueError(f"--half writes float16 EXR files only, got --out {args.out}")
         for out in outputs:  # before any frame is rendered
             if out.resolve() in inputs:
                 raise ValueError(f"--out {out} is one of the inputs: it would be overwritten; choose another output")
@@ -297,6 +325,7 @@ def main(argv: list[str] | None = None) -> int:
         window = SensorWindow(*args.sensor_window) if args.sensor_window else None
         level = args.graph_optimization if args.graph_optimization != "auto" else "off" if len(frames) == 1 else "basic"
         model = OnnxBokeh(args.model, threads=args.threads, skip_in_focus=not args.no_skip, optimization=level)
+        made_by = provenance(args.model)
         static: dict[tuple[str, str], np.ndarray] = {}  # inputs without a frame pattern, read once per use
         warned: list[bool] = []  # the depth range is checked on the first frame
 
@@ -319,7 +348,11 @@ def main(argv: list[str] | None = None) -> int:
                                    depth, load(args.alpha, frame, "alpha"), focus_m,
                                    args.erode, args.feather, args.clamp_coc, window, not args.straight)
             out = _frame_path(args.out, frame)
-            write_output(out, comp, args.clip_ldr)
+            plate_path = Path(split_source(str(_frame_path(args.plate, frame)))[0])
+            attributes = {**image_attributes(plate_path, PLATE_ATTRIBUTES), **made_by}
+            if focus_m is not None:
+                attributes["neuralbokeh:focus_m"] = float(focus_m)
+            write_output(out, comp, args.clip_ldr, args.half, attributes)
             log.info("wrote %s (%s, %d of %d tiles through the network)", out,
                      "the CoC map's blur" if focus_m is None else f"focus {focus_m:.3f} m", model.last_tiles_run, model.num_tiles)
     except (FileNotFoundError, ValueError, OSError) as e:

@@ -28,7 +28,6 @@ from __future__ import annotations
 import json
 import logging
 import math
-import warnings
 from pathlib import Path
 from typing import Any
 
@@ -67,6 +66,8 @@ def make_session(path_or_bytes: str | bytes, threads: int | None = None, optimiz
             ONNX, an opset it does not know), with its reason in one line; an unknown
             ``optimization``.
     """
+    if threads is not None and (int(threads) != threads or threads < 1):
+        raise ValueError(f"threads must be a whole number >= 1 (or None: all cores), got {threads!r}")
     if optimization not in OPTIMIZATION:
         raise ValueError(f"optimization must be one of {', '.join(OPTIMIZATION)}, got {optimization!r}")
     so = ort.SessionOptions()
@@ -239,8 +240,7 @@ class OnnxBokeh:
             msg = (f"|CoC| up to {np.abs(coc_px).max():.3f} px at {where} ({int(over.sum())} pixels) exceeds the "
                    f"model's trained maximum of {self.contract.max_coc_px:.3f} px")
             if not clamp_coc:
-                raise ValueError(msg + "; pass clamp_coc=True to clamp it")
-            warnings.warn(msg + "; clamped", stacklevel=3)
+                raise ValueError(msg + "; clamp it with clamp_coc=True (--clamp-coc on the command line)")
             log.warning("%s; clamped", msg)
             coc_px = np.clip(coc_px, -self.contract.max_coc_px, self.contract.max_coc_px)
         active = self.active_tiles(coc_px)
