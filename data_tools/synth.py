@@ -140,11 +140,16 @@ def main(argv: list[str] | None = None) -> int:
                 results.append(render_scene(i, opts))
                 bar.update()
         else:
-            with ProcessPoolExecutor(args.workers, mp_context=mp.get_context("spawn")) as pool:
+            pool = ProcessPoolExecutor(args.workers, mp_context=mp.get_context("spawn"))
+            try:
                 futures = [pool.submit(render_scene, i, opts) for i in range(args.scenes)]
                 for fut in as_completed(futures):
                     results.append(fut.result())
                     bar.update()
+            except BaseException:  # Ctrl-C or a failed scene: the queued scenes are dropped, not rendered
+                pool.shutdown(wait=False, cancel_futures=True)
+                raise
+            pool.shutdown()
     elapsed = time.perf_counter() - t0
     written = [r for r in results if not r["skipped"]]
     ds = FocalStackDataset(args.out)

@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 import torch
 import torch.nn.functional as F
+from tqdm import tqdm
 
 from neuralbokeh import __version__
 from neuralbokeh.data.dataset import write_scene
@@ -130,7 +131,10 @@ def process_stack(stack: Path, out: Path, args: argparse.Namespace, failures: li
     ref = len(files) // 2
     wb = None if developed else white_balance(files[ref], args.white_balance)
     images, kept = [], []
+    # stages of one stack (decoding is most of it); shown on a terminal only (disable=None)
+    bar = tqdm(total=len(files) + 2, desc=f"{stack.name}: decode", unit="step", leave=False, disable=None)
     for f, fm in zip(files, focus):
+        bar.update()
         try:
             images.append(decode_developed(f, args.transfer) if developed else decode(f, wb, settings))
             kept.append((f, fm))
@@ -153,6 +157,7 @@ def process_stack(stack: Path, out: Path, args: argparse.Namespace, failures: li
         raise ValueError(f"{stack}: the reference slice {kept[ref][0].name} is black")
     exposure = 0.18 / float(y)
     images = [im * exposure for im in images]
+    bar.set_description(f"{stack.name}: align")
     if args.no_align:
         aligned, info, crop = images, [], (slice(0, decoded_h), slice(0, decoded_w))
     else:
@@ -162,6 +167,8 @@ def process_stack(stack: Path, out: Path, args: argparse.Namespace, failures: li
     if size != (crop_w, crop_h):
         aligned = [_area_resize(a, size) for a in aligned]
     focus_kept = [fm for _, fm in kept]
+    bar.update()
+    bar.set_description(f"{stack.name}: fuse and write")
     if args.depth:
         depth_in = read_image(args.depth)[..., 0].astype(np.float64)
         if depth_in.shape != (decoded_h, decoded_w):
@@ -193,6 +200,8 @@ def process_stack(stack: Path, out: Path, args: argparse.Namespace, failures: li
     }
     write_scene(folder, fused.aif.astype(np.float64), fused.depth_m.astype(np.float64),
                 [a.astype(np.float64) for a in aligned], cocs, scene_lens, focus_kept, None, generator, window)
+    bar.update()
+    bar.close()
     residual = max((a.residual_px for a in info), default=0.0)
     return {"stack": stack.name, "slices": len(aligned), "size": size, "residual_px": residual,
             "max_coc_px": float(max(np.abs(c).max() for c in cocs))}
