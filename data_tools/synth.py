@@ -11,6 +11,7 @@ whatever the number of workers); existing scenes are skipped, so an interrupted 
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import math
 import multiprocessing as mp
@@ -27,7 +28,7 @@ from tqdm import tqdm
 from neuralbokeh import __version__
 from neuralbokeh.core.apertures import ApertureModel, parse_aperture
 from neuralbokeh.core.cli import HelpFormatter, run_cli
-from neuralbokeh.data.dataset import FocalStackDataset, write_scene
+from neuralbokeh.data.dataset import FocalStackDataset, read_scene_meta, write_scene
 from neuralbokeh.core.io import read_image
 from neuralbokeh.core.optics import ThinLens, blocks_for_coc, focus_sweep_m
 from neuralbokeh.render import scatter_layers
@@ -104,6 +105,25 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def refuse_mixing(out: Path, wanted: dict[str, Any]) -> None:
+    """A rerun into ``out`` adds scenes to those already there: refuse (``SystemExit``) when they
+    were made with another image size, lens or aperture (``wanted``: those ``scene.json``
+    entries of this run), which would mix two datasets in one folder."""
+    existing = sorted(out.glob("scene_*/scene.json")) if out.is_dir() else []
+    if not existing:
+        return
+    try:
+        meta = read_scene_meta(existing[0].parent)
+    except (OSError, ValueError) as e:
+        raise SystemExit(f"error: --out {out} holds a scene this run cannot read ({e}); choose another --out") from None
+    differ = [k for k, v in wanted.items() if json.dumps(meta.get(k), sort_keys=True) != json.dumps(v, sort_keys=True)]
+    if differ:
+        said = "; ".join(f"{k} {json.dumps(meta.get(k), sort_keys=True)} there, {json.dumps(wanted[k], sort_keys=True)} now"
+                         for k in differ)
+        raise SystemExit(f"error: --out {out} holds {len(existing)} scene(s) of another {', '.join(differ)} ({said}): a rerun "
+                         "adds scenes to them; choose another --out")
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
@@ -120,6 +140,8 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError(f"need focal length < --near < --far, got {args.near} m and {args.far} m")
     except (ValueError, OSError) as e:
         raise SystemExit(f"error: {e}")
+    refuse_mixing(args.out, {"image_size": {"width": args.size[0], "height": args.size[1]}, "lens": lens.to_dict(),
+                             "aperture": aperture.to_dict()})
     args.out.mkdir(parents=True, exist_ok=True)
     opts = {
         "out": str(args.out),

@@ -121,3 +121,26 @@ def test_a_run_never_overwrites_another_and_a_dying_run_keeps_its_steps(tiny_dat
     summary = train(cfg, resume=ck, progress=False)
     assert summary["steps"] == 5 and load_checkpoint(ck)["step"] == 5
     assert torch.isfinite(torch.tensor(summary["metrics"]["eval_psnr"]))
+
+
+def test_a_rerun_with_another_lens_is_refused_and_mixed_lenses_are_flagged(tmp_path):
+    """``synth`` into a folder of scenes made with another size, lens or aperture refuses (it would
+    mix two datasets); the check flags scenes that do not share one lens, even when every scene
+    alone is sound."""
+    import shutil
+
+    from data_tools.synth import main as synth
+    from neuralbokeh.data.check import check_dataset
+
+    base = ["--scenes", "2", "--size", "24", "16", "--slices", "1", "--seed", "1"]
+    assert synth(["--out", str(tmp_path / "a"), *base]) == 0
+    for change, said in ((["--f-number", "4.0"], "lens"), (["--size", "32", "16"], "image_size"),
+                         (["--aperture", "polygon:6"], "aperture")):
+        with pytest.raises(SystemExit, match=f"holds 2 scene\\(s\\) of another {said}.*choose another --out"):
+            synth(["--out", str(tmp_path / "a"), *base, *change])
+    assert len(list((tmp_path / "a").glob("scene_*"))) == 2
+    assert synth(["--out", str(tmp_path / "b"), *base, "--f-number", "4.0"]) == 0
+    assert check_dataset(tmp_path / "a") == [] and check_dataset(tmp_path / "b") == []
+    shutil.copytree(tmp_path / "b" / "scene_00000", tmp_path / "a" / "scene_00009")
+    problems = check_dataset(tmp_path / "a")
+    assert len(problems) == 1 and "the scenes have 2 different lenses" in problems[0] and "scene_00009" in problems[0]

@@ -11,6 +11,7 @@ file at once. ``train`` and ``neuralbokeh.evaluation.evaluate`` run it before th
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import os
 import sys
@@ -113,6 +114,27 @@ def check_scene(folder: str | os.PathLike, coc_tolerance: tuple[float, float] = 
     return problems
 
 
+def shared_lens_problems(scenes: Sequence[Path]) -> list[str]:
+    """One problem per ``scene.json`` entry that the scenes must share but do not: the lens and
+    the aperture (one model learns one lens; image sizes may differ, a model trains on crops)."""
+    problems = []
+    metas = {}
+    for folder in scenes:
+        try:
+            metas[folder] = read_scene_meta(folder)
+        except (OSError, ValueError):
+            continue  # reported by check_scene
+    for key, plural in (("lens", "lenses"), ("aperture", "apertures")):
+        groups: dict[str, list[str]] = {}
+        for folder, meta in metas.items():
+            groups.setdefault(json.dumps(meta.get(key), sort_keys=True), []).append(folder.name)
+        if len(groups) > 1:
+            said = "; ".join(f"{value} in {len(names)} ({', '.join(names[:3])}{', ...' if len(names) > 3 else ''})"
+                             for value, names in sorted(groups.items(), key=lambda g: -len(g[1])))
+            problems.append(f"the scenes have {len(groups)} different {plural} (one model learns one lens): {said}")
+    return problems
+
+
 def check_dataset(roots: str | os.PathLike | Sequence[str | os.PathLike], progress: bool = False) -> list[str]:
     """Problems found in every scene under ``roots`` (empty: the dataset is sound).
 
@@ -125,7 +147,7 @@ def check_dataset(roots: str | os.PathLike | Sequence[str | os.PathLike], progre
         from tqdm import tqdm
 
         it = tqdm(scenes, desc="checking scenes", unit="scene")
-    problems = [p for folder in it for p in check_scene(folder)]
+    problems = [p for folder in it for p in check_scene(folder)] + shared_lens_problems(scenes)
     log.debug("checked %d scenes: %d problem(s)", len(scenes), len(problems))
     return problems
 
