@@ -291,7 +291,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--feather", type=float, default=0.0, help="smooth the alpha by this Gaussian sigma in px before it is blurred")
     p.add_argument("--threads", type=int, default=None, help="onnxruntime threads (default: all cores)")
     p.add_argument("--clamp-coc", action="store_true", help="clamp CoCs beyond the model's range (warns) instead of failing")
-    p.add_argument("--clip-ldr", action="store_true", help="clip values outside [0, 1] when writing PNG")
+    p.add_argument("--clip-ldr", action="store_true", help="clip values outside [0, 1] when writing PNG or JPEG")
     p.add_argument("--no-skip", action="store_true", help="run the network on in-focus tiles too")
     p.add_argument("--graph-optimization", choices=("auto", "off", "basic", "all"), default="auto",
                    help="onnxruntime's graph optimisation: off loads the model fastest, basic or all may render a "
