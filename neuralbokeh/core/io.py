@@ -160,16 +160,30 @@ def write_image(
     return path
 
 
-def image_attributes(path: str | os.PathLike, names: list[str]) -> dict[str, tuple[Any, Any]]:
-    """The header attributes ``names`` that an image file has, as ``{name: (TypeDesc, value)}``
-    (typed, so that a timecode or a rational frame rate is written back as it was)."""
+@contextlib.contextmanager
+def _image_input(path: Path) -> Iterator[Any]:
+    """An open ``oiio.ImageInput`` of ``path``, closed on exit.
+
+    Raises:
+        FileNotFoundError: no such file.
+        OSError: OpenImageIO cannot open it (its message included).
+    """
+    if not path.is_file():
+        raise FileNotFoundError(f"no such image file: {path}")
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
         raise OSError(f"cannot read {path}: {oiio.geterror()}")
     try:
-        return {a.name: (a.type, a.value) for a in inp.spec().extra_attribs if a.name in names}
+        yield inp
     finally:
         inp.close()
+
+
+def image_attributes(path: str | os.PathLike, names: list[str]) -> dict[str, tuple[Any, Any]]:
+    """The header attributes ``names`` that an image file has, as ``{name: (TypeDesc, value)}``
+    (typed, so that a timecode or a rational frame rate is written back as it was)."""
+    with _image_input(Path(path)) as inp:
+        return {a.name: (a.type, a.value) for a in inp.spec().extra_attribs if a.name in names}
 
 
 def image_channels(path: str | os.PathLike) -> list[str]:
@@ -179,16 +193,8 @@ def image_channels(path: str | os.PathLike) -> list[str]:
         FileNotFoundError: no such file.
         OSError: OpenImageIO cannot read it.
     """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"no such image file: {path}")
-    inp = oiio.ImageInput.open(str(path))
-    if inp is None:
-        raise OSError(f"cannot read {path}: {oiio.geterror()}")
-    try:
+    with _image_input(Path(path)) as inp:
         return list(inp.spec().channelnames)
-    finally:
-        inp.close()
 
 
 def read_image(path: str | os.PathLike, with_attributes: bool = False, rows: tuple[int, int] | None = None,
@@ -210,12 +216,7 @@ def read_image(path: str | os.PathLike, with_attributes: bool = False, rows: tup
         OSError: OpenImageIO cannot read it (its message included).
     """
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"no such image file: {path}")
-    inp = oiio.ImageInput.open(str(path))
-    if inp is None:
-        raise OSError(f"cannot read {path}: {oiio.geterror()}")
-    try:
+    with _image_input(path) as inp:
         spec = inp.spec()
         r0, r1 = (0, spec.height) if rows is None else rows
         if not 0 <= r0 < r1 <= spec.height:
@@ -228,8 +229,6 @@ def read_image(path: str | os.PathLike, with_attributes: bool = False, rows: tup
             raise OSError(f"cannot read {path}: {inp.geterror()}")
         attrs = {a.name: a.value for a in spec.extra_attribs} if with_attributes else None
         names = list(spec.channelnames)
-    finally:
-        inp.close()
     arr = np.asarray(arr, dtype=np.float32).reshape(r1 - r0, spec.width, spec.nchannels)
     if channels is not None:
         missing = [c for c in channels if c not in names]
