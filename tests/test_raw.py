@@ -142,8 +142,9 @@ def test_real_camera_files_decode_or_fail_clearly(shared_data):
     assert read_metadata(raw / "Blackmagic.dng")["focal_length_mm"] is None  # no EXIF at all
     stripped = shared_data / "raw_metadata_only"
     for name in ("exiftool_DNG_Canon350D_stripped.dng", "exiv2_IMG_1361_iPhone12Pro_stripped.dng"):
-        with pytest.raises(RawDecodeError, match="all-zero|LibRaw cannot|not a colour-filter-array"):
-            decode(stripped / name, (1.0, 1.0, 1.0))
+        for _ in range(3):  # LibRaw fills a stripped file's image from uninitialised memory: it must not matter
+            with pytest.raises(RawDecodeError, match="image data missing or stripped"):
+                decode(stripped / name, (1.0, 1.0, 1.0))
     with pytest.raises(RawDecodeError, match="LibRaw cannot"):
         decode(stripped / "Issue_247-1_D70s.nef", (1.0, 1.0, 1.0))
     assert read_metadata(stripped / "Issue_247-1_D70s.nef")["f_number"] == pytest.approx(2.8)

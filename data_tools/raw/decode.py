@@ -34,6 +34,13 @@ RAW_EXTENSIONS = {".3fr", ".arw", ".cr2", ".cr3", ".crw", ".dcr", ".dng", ".erf"
                   ".srw", ".x3f"}
 
 
+# Fewer bits per sensor pixel than this cannot hold an image: lossless RAW codecs spend >= 1 bit
+# per sample, lossy DNGs ~1-2. Stripped sample files hold 0.013-0.04. LibRaw decodes such a file
+# from uninitialised memory (all zero, or sparse garbage from one call to the next), so the
+# size, not the decoded values, is what tells.
+MIN_BITS_PER_PIXEL = 0.25
+
+
 class RawDecodeError(ValueError):
     """A RAW file that cannot be used; the message names the file and the reason."""
 
@@ -90,10 +97,12 @@ def decode(path: Path, wb: tuple[float, float, float], settings: DecodeSettings 
 
     Raises:
         RawDecodeError: unreadable file, not a Bayer/X-Trans CFA (e.g. a film scanner's NEF),
-            or an image that decodes to all zeros (DNGs whose image data was stripped).
+            or a file too small to hold its image (DNGs whose image data was stripped), or an
+            image that decodes to all zeros.
     """
     with _open(path) as raw:
         try:  # LibRaw unpacks lazily: a truncated file fails at the first attribute that needs the data
+            _check_holds_image(path, raw.sizes.raw_width * raw.sizes.raw_height)
             cfa = raw.raw_pattern is not None and raw.num_colors == 3
             kind = f"raw type {raw.raw_type.name}, {raw.num_colors} colours"
             rgb = None
@@ -112,6 +121,13 @@ def decode(path: Path, wb: tuple[float, float, float], settings: DecodeSettings 
     if rgb.max() == 0:
         raise RawDecodeError(f"{path}: decodes to an all-zero image (image data missing or stripped)")
     return rgb.astype(np.float32) / 65535.0
+
+
+def _check_holds_image(path: Path, pixels: int) -> None:
+    size = path.stat().st_size
+    if size * 8 < MIN_BITS_PER_PIXEL * pixels:
+        raise RawDecodeError(f"{path}: image data missing or stripped ({size} bytes for {pixels} sensor pixels, "
+                             f"{size * 8 / pixels:.3f} bits each; a RAW image needs >= {MIN_BITS_PER_PIXEL})")
 
 
 def _number(value: Any) -> float | None:
