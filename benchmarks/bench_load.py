@@ -7,6 +7,12 @@ onnxruntime's default), and for a file saved already optimised (``optimized_mode
 loaded with optimisation off: the load (session creation, median of ``--repeats``, each in a
 fresh process so no cache helps) and the render of the frame (median of ``--repeats`` after a
 warm-up), as ratios to the default level, and the largest difference from its output.
+
+Then the whole compositing CLI on that frame, one frame per process as a render-farm task runs
+it (load + read + render + write, ``--graph-optimization auto``), against the render alone: the
+frame as an EXR plate, the same colours as a premultiplied render with alpha 1 everywhere (so
+every tile goes through the network) and its CoC map as ``--depth-math coc``. The CLI renders
+the colour and its alpha together (a batch of two), so its render is about two of the row above.
 """
 
 from __future__ import annotations
@@ -68,6 +74,29 @@ def _run(model: Path, frame: Path, level: str, repeats: int, threads: int, out: 
     return json.loads(res.stdout.strip().splitlines()[-1])
 
 
+def cli_row(model: Path, frame: Path, threads: int, repeats: int, tmp: Path, render_s: float) -> None:
+    """Wall time of ``python -m neuralbokeh.runtime.composite`` on the frame (median of ``repeats``
+    fresh processes), and its ratio to ``render_s`` (one render, graph optimisation ``all``)."""
+    sys.path.insert(0, str(ROOT))
+    from neuralbokeh.core.io import write_image
+
+    data = np.load(frame)
+    write_image(tmp / "plate.exr", data["aif"])
+    write_image(tmp / "alpha.exr", np.ones(data["coc"].shape, np.float32))
+    write_image(tmp / "coc.exr", data["coc"].astype(np.float32))
+    cmd = [sys.executable, "-m", "neuralbokeh.runtime.composite", "--model", str(model), "--plate", str(tmp / "plate.exr"),
+           "--render", str(tmp / "plate.exr"), "--alpha", str(tmp / "alpha.exr"), "--depth", str(tmp / "coc.exr"),
+           "--depth-math", "coc", "--threads", str(threads), "--out", str(tmp / "comp.exr"), "--overwrite"]
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        subprocess.run(cmd, cwd=ROOT, check=True, capture_output=True)
+        times.append(time.perf_counter() - t)
+    cli = statistics.median(times)
+    print(f"compositing CLI, one frame per process: {cli:.2f} s = {cli / render_s:.2f}x the render alone "
+          f"({render_s:.3f} s); render + alpha in one batch, EXR read and written", flush=True)
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("model", type=Path)
@@ -93,6 +122,7 @@ def main() -> None:
             base = base or (load, render, np.load(tmp / "all.npy"))
             print(f"{level:<22} {load:7.2f} {load / base[0]:6.2f} {render:9.3f} {render / base[1]:6.2f} "
                   f"{np.abs(np.load(tmp / f'{level}.npy') - base[2]).max():9.1e}", flush=True)
+        cli_row(args.model, args.frame, args.threads, args.repeats, tmp, base[1])
         saved = tmp / "optimised.onnx"
         _run(args.model, args.frame, "all", 0, args.threads, tmp / "save.npy", saved)
         try:

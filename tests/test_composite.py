@@ -355,3 +355,63 @@ def test_bad_pixels_are_named_as_the_user_knows_them(busy_onnx):
     bad_plate[2, 2] = -1.0
     with pytest.raises(ValueError, match="the plate"):
         composite_frame(m, bad_plate, render, depth, alpha, 2.0)
+
+
+def test_data_windows_overscan_and_crops_are_placed_on_the_plate(busy_onnx, tmp_path):
+    """EXR data windows: a render with overscan is cut to the plate, a depth with a smaller data
+    window is in focus where the render is empty, and a plate whose data window is a crop of its
+    display window is that crop of the sensor; the output keeps the plate's windows."""
+    from neuralbokeh.core.io import image_windows
+    from neuralbokeh.core.optics import SensorWindow
+
+    m = OnnxBokeh(busy_onnx, threads=1)
+    h, w = m.height, m.width
+    plate, render, _, alpha = _inputs(m, seed=4)
+    prem = render * alpha[:, :, None]
+    depth = np.where(alpha > 0, 1.2, 2.0).astype(np.float32)
+    big = np.random.default_rng(5).uniform(0, 1, (h + 8, w + 8, 3)).astype(np.float32)  # 4 px of overscan all round
+    big[4:4 + h, 4:4 + w] = prem
+
+    def layers(folder, x, y, depth_cols=20):  # the CG layers with the frame's first pixel at (x, y)
+        folder.mkdir()
+        display = (0, 0, w + 12, h + 9)
+        write_image(folder / "render.exr", big, windows=((x - 4, y - 4, w + 8, h + 8), display))
+        write_image(folder / "alpha.exr", np.pad(alpha, 4), windows=((x - 4, y - 4, w + 8, h + 8), display))
+        write_image(folder / "depth.exr", np.full((18, depth_cols), 1.2, np.float32),
+                    windows=((x + 10, y + 8, depth_cols, 18), display))
+        return ["--model", str(busy_onnx), "--focus", "2.0", "--threads", "1"] + [
+            a for n in ("render", "depth", "alpha") for a in (f"--{n}", str(folder / f"{n}.exr"))]
+
+    crop = (5, 3, w, h)
+    write_image(tmp_path / "plate.exr", plate, windows=(crop, (0, 0, w + 12, h + 9)))
+    args = layers(tmp_path / "crop", 5, 3)
+    assert main(args + ["--plate", str(tmp_path / "plate.exr"), "--out", str(tmp_path / "comp.exr")]) == 0
+    assert image_windows(tmp_path / "comp.exr") == (crop, (0, 0, w + 12, h + 9))
+    window = SensorWindow(5 / (w + 12), 3 / (h + 9), w / (w + 12), h / (h + 9))
+    want = composite_frame(m, plate, prem, depth, alpha, 2.0, window=window)
+    np.testing.assert_allclose(read_image(tmp_path / "comp.exr"), want, rtol=1e-5, atol=1e-6)
+    assert float(np.abs(want - composite_frame(m, plate, prem, depth, alpha, 2.0)).max()) > 1e-4  # the crop mattered
+    # the same plate as a plain file, with the window given by hand
+    write_image(tmp_path / "plain.exr", plate)
+    assert main(layers(tmp_path / "plain", 0, 0) + ["--plate", str(tmp_path / "plain.exr"), "--sensor-window",
+                                                     *map(str, window.to_dict().values()), "--out", str(tmp_path / "comp2.exr")]) == 0
+    np.testing.assert_allclose(read_image(tmp_path / "comp2.exr"), want, rtol=1e-5, atol=1e-6)
+    # a depth that leaves part of the render without a value is refused, naming the first pixel
+    short = layers(tmp_path / "short", 5, 3, depth_cols=19)
+    with pytest.raises(SystemExit, match=r"no value at 18 pixels where the render is not empty, first at column 29, row 8"):
+        main(short + ["--plate", str(tmp_path / "plate.exr"), "--out", str(tmp_path / "comp3.exr")])
+
+
+def test_a_far_equals_zero_map_read_as_distance_names_the_inverse_option(busy_onnx, tmp_path):
+    m = OnnxBokeh(busy_onnx, threads=1)
+    plate, render, _, alpha = _inputs(m)
+    inverse = np.where(alpha > 0, 1 / 1.2, 0.0).astype(np.float32)  # 0 = at infinity
+    for name, img in {"plate": plate, "render": render * alpha[:, :, None], "alpha": alpha, "inv": inverse}.items():
+        write_image(tmp_path / f"{name}.exr", img)
+    args = ["--model", str(busy_onnx), "--focus", "2.0", "--depth", str(tmp_path / "inv.exr"), "--out", str(tmp_path / "o.exr")]
+    args += [a for n in ("plate", "render", "alpha") for a in (f"--{n}", str(tmp_path / f"{n}.exr"))]
+    n = int((inverse == 0).sum())
+    with pytest.raises(SystemExit, match=rf"inv.exr: depth must be > 0 \(inf allowed\), got {n} pixels <= 0 \(min 0\); "
+                                         r"0 at infinity is a 1/distance map: give --depth-math inverse"):
+        main(args)
+    assert main(args + ["--depth-math", "inverse"]) == 0

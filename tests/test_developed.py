@@ -143,3 +143,19 @@ def test_real_developed_stacks(tmp_path, name, lens_args):
     fused = focus_measure([got["aif"]])[0]
     assert float(fused.mean()) >= 0.9 * float(fm.max(dim=0).values.mean())
     json.dumps(got["meta"]["generator"])  # the record stays JSON
+
+
+def test_a_mistake_in_the_options_is_one_error_line_not_one_per_stack(scene, tmp_path, capsys):
+    from neuralbokeh.core.cli import run_cli
+
+    slices, focus, _, _ = scene
+    for name in ("a", "b"):  # no EXIF: no focal length for either stack
+        _write_stack(tmp_path / name, slices, focus, ".png", exif=False)
+    args = [str(tmp_path / "a"), str(tmp_path / "b"), "--out", str(tmp_path / "ds"), "--sensor-width", "12",
+            "--f-number", "1.8", "--focus-diopters", ",".join(f"{1 / f:.9g}" for f in focus)]
+    assert run_cli(raw_main, args) == 2
+    out, err = capsys.readouterr()
+    errors = [line for line in err.splitlines() if line.startswith("error:")]
+    assert errors == ["error: no focal length mm in the metadata: give --focal-length (mm) (all 2 stacks)"]
+    assert err.count("focal length") == 1
+    assert "data.roots" not in out + err

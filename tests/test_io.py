@@ -96,3 +96,17 @@ def test_reads_real_focal_stack_png(shared_data):
     img = read_image(path)
     assert img.shape[:2] == (480, 640) and img.shape[2] in (1, 3, 4)
     assert img.dtype == np.float32 and 0.0 <= img.min() and img.max() <= 1.0 and img.std() > 0.01
+
+
+def test_data_windows_round_trip_and_place(tmp_path):
+    from neuralbokeh.core.io import image_windows, place
+
+    img = np.arange(2 * 3 * 1, dtype=np.float32).reshape(2, 3, 1)
+    write_image(tmp_path / "w.exr", img, windows=((-1, 4, 3, 2), (0, 0, 8, 6)))
+    assert image_windows(tmp_path / "w.exr") == ((-1, 4, 3, 2), (0, 0, 8, 6))
+    np.testing.assert_array_equal(read_image(tmp_path / "w.exr"), img)
+    got = place(img, (-1, 4, 3, 2), (0, 3, 4, 2), fill=-5.0)  # one column cut, one row and two columns empty
+    np.testing.assert_array_equal(got[:, :, 0], [[-5, -5, -5, -5], [1, 2, -5, -5]])
+    assert (place(img, (-1, 4, 3, 2), (10, 10, 2, 2), fill=7.0) == 7.0).all()  # no overlap at all
+    with pytest.raises(ValueError, match="data window"):
+        write_image(tmp_path / "bad.exr", img, windows=((0, 0, 4, 2), (0, 0, 8, 6)))

@@ -35,7 +35,6 @@ from neuralbokeh.core.cli import HelpFormatter, run_cli
 from .developed import parse_transfer
 from .pipeline import process_stack
 
-log = logging.getLogger("data_tools.raw")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -86,14 +85,17 @@ def main(argv: list[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     failures: list[str] = []
     rows = []
+    reasons: set[str] = set()  # why whole stacks failed: one reason for all is a mistake in the options
     for stack in tqdm(args.stacks, desc="stacks", unit="stack", disable=len(args.stacks) < 2):
         try:
             row = process_stack(stack, args.out, args, failures)
         except (ValueError, FileNotFoundError, OSError) as e:
             failures.append(f"{stack}: {e}")
-            log.error("%s: %s", stack, e)
+            reasons.add(str(e).removeprefix(f"{stack}: "))
             continue
         rows.append(row or {"stack": stack.name, "skipped": True})
+    if not rows and len(reasons) == 1 and len(failures) == len(args.stacks):
+        raise SystemExit(f"error: {failures[0] if len(failures) == 1 else f'{reasons.pop()} (all {len(failures)} stacks)'}")
     for r in rows:
         if r.get("skipped"):
             print(f"{r['stack']:<24} already written, skipped")
@@ -102,8 +104,8 @@ def main(argv: list[str] | None = None) -> int:
                   f"<= {r['residual_px']:.3f} px, max |CoC| {r['max_coc_px']:.2f} px")
     for f in failures:
         print(f"FAILED  {f}")
-    print(f"dataset {args.out}: {sum(not r.get('skipped') for r in rows)} scene(s) written; train with "
-          f"data.roots=['{args.out}']")
+    written = sum(not r.get("skipped") for r in rows)
+    print(f"dataset {args.out}: {written} scene(s) written" + (f"; train with data.roots=['{args.out}']" if rows else ""))
     return 1 if failures else 0
 
 

@@ -101,6 +101,7 @@ def write_image(
     attributes: dict[str, Any] | None = None,
     channel_names: list[str] | None = None,
     pixel_type: str = "float32",
+    windows: tuple[Window, Window] | None = None,
 ) -> Path:
     """Write an image atomically; the format comes from the extension (.exr, .tif, .png, ...).
 
@@ -112,6 +113,8 @@ def write_image(
             ``(TypeDesc, value)`` pairs as :func:`image_attributes` returns them.
         channel_names: e.g. ``["R", "G", "B"]`` or ``["Z"]`` (default: OpenImageIO's).
         pixel_type: one of ``float32``, ``float16``, ``uint8``, ``uint16``.
+        windows: ``(data window, display window)`` (see :func:`image_windows`); the data
+            window's size must be the image's (default: both ``(0, 0, W, H)``).
 
     Returns:
         The path written.
@@ -141,6 +144,11 @@ def write_image(
         if len(channel_names) != c:
             raise ValueError(f"channel_names must name {c} channels, got {channel_names}")
         spec.channelnames = tuple(channel_names)
+    if windows is not None:
+        (x, y, dw, dh), (fx, fy, fw, fh) = windows
+        if (dw, dh) != (w, h) or fw < 1 or fh < 1:
+            raise ValueError(f"data window {windows[0]} must be the image's {w}x{h} and the display window not empty")
+        spec.x, spec.y, spec.full_x, spec.full_y, spec.full_width, spec.full_height = x, y, fx, fy, fw, fh
     if path.suffix.lower() == ".exr":
         spec.attribute("compression", "zip")
     for key, value in (attributes or {}).items():
@@ -195,6 +203,44 @@ def image_channels(path: str | os.PathLike) -> list[str]:
     """
     with _image_input(Path(path)) as inp:
         return list(inp.spec().channelnames)
+
+
+# A pixel rectangle (x, y, width, height) in an image's absolute pixel coordinates, as EXR's data
+# and display windows are: (0, 0, W, H) for most files; a crop's data window lies inside its
+# display window, a render's overscan reaches beyond it.
+Window = tuple[int, int, int, int]
+
+
+def image_windows(path: str | os.PathLike) -> tuple[Window, Window]:
+    """``(data window, display window)`` of an image file's first part, each ``(x, y, w, h)``.
+
+    Raises:
+        FileNotFoundError: no such file.
+        OSError: OpenImageIO cannot read it.
+    """
+    with _image_input(Path(path)) as inp:
+        s = inp.spec()
+        return (s.x, s.y, s.width, s.height), (s.full_x, s.full_y, s.full_width, s.full_height)
+
+
+def intersect(a: Window, b: Window) -> Window | None:
+    """The overlap of two windows, or None when they do not overlap."""
+    x0, y0 = max(a[0], b[0]), max(a[1], b[1])
+    x1, y1 = min(a[0] + a[2], b[0] + b[2]), min(a[1] + a[3], b[1] + b[3])
+    return (x0, y0, x1 - x0, y1 - y0) if x1 > x0 and y1 > y0 else None
+
+
+def place(image: np.ndarray, data: Window, window: Window, fill: float = 0.0) -> np.ndarray:
+    """``image`` ``(h, w, C)`` of data window ``data`` laid into ``window``: the overlap is
+    copied, what ``data`` does not cover is ``fill`` (EXR's rule: no pixel outside the data
+    window), what lies outside ``window`` is cut off. Returns ``(window h, window w, C)``."""
+    out = np.full((window[3], window[2], image.shape[2]), fill, dtype=image.dtype)
+    both = intersect(data, window)
+    if both is not None:
+        x, y, w, h = both
+        out[y - window[1]:y - window[1] + h, x - window[0]:x - window[0] + w] = \
+            image[y - data[1]:y - data[1] + h, x - data[0]:x - data[0] + w]
+    return out
 
 
 def read_image(path: str | os.PathLike, with_attributes: bool = False, rows: tuple[int, int] | None = None,

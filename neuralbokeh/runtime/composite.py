@@ -18,6 +18,9 @@ layers: any input may name them, ``shot.exr:ViewLayer.Combined`` (a layer) or
 ``depth.Z`` and the alpha ``A``, or the one layer that has them (Blender's
 ``ViewLayer.Combined``, ``ViewLayer.Depth.Z``), or a depth or alpha file's only channel
 (:mod:`neuralbokeh.runtime.channels`). A file that leaves the choice open is refused.
+EXR data windows: every input is read in the plate's pixel coordinates over the plate's data
+window (:func:`plate_frame`); overscan is cut, and a plate cropped inside its display window is
+that crop of the sensor.
 
 Sequences: put ``%04d`` (any printf integer pattern), ``####`` (one digit each) or ``$F4``
 (Houdini) in any path and give ``--frames 1-48`` (or ``1001-1100x2``, every second frame);
@@ -42,7 +45,8 @@ from tqdm import tqdm
 
 from ..core.checks import check_at_least, check_finite
 from ..core.cli import HelpFormatter, run_cli
-from ..core.io import image_attributes, image_channels, prepare_output, read_image, write_image
+from ..core.io import (Window, image_attributes, image_channels, image_windows, intersect, place, prepare_output,
+                       read_image, write_image)
 from ..core.optics import SensorWindow
 from .channels import pick_channels, split_source
 from .masks import erode, gaussian_blur
@@ -105,16 +109,46 @@ def _convert(arr: np.ndarray, src: str, dst: str) -> np.ndarray:
     return out.get_pixels(oiio.FLOAT).reshape(arr.shape)
 
 
-def read_linear(source: str | Path, kind: str) -> np.ndarray:
+def read_linear(source: str | Path, kind: str, window: Window | None = None) -> np.ndarray:
     """The channels of ``kind`` in ``source`` (``path`` or ``path:NAME``, see
     :func:`~neuralbokeh.runtime.channels.pick_channels`): ``"rgb"`` -> ``(H, W, 3)`` linear
-    (sRGB-tagged 8/16-bit files linearised); ``"depth"`` or ``"alpha"`` -> ``(H, W)``."""
+    (sRGB-tagged 8/16-bit files linearised); ``"depth"`` or ``"alpha"`` -> ``(H, W)``.
+
+    ``window``: the pixels ``(x, y, w, h)`` wanted, in the file's pixel coordinates (an EXR's
+    data window may be larger, with overscan, or smaller): what the file's data window does not
+    cover is 0, or NaN for depth (no depth there); what lies outside is cut off.
+    """
     name, selector = split_source(str(source))
     path = Path(name)
     img = read_image(path, channels=pick_channels(image_channels(path), kind, selector, str(path)))
-    if kind == "rgb":
-        return _convert(img, "sRGB", "linear") if _is_ldr_srgb(path) else img
-    return img[:, :, 0]
+    if kind == "rgb" and _is_ldr_srgb(path):
+        img = _convert(img, "sRGB", "linear")
+    if window is not None:
+        img = place(img, image_windows(path)[0], window, np.nan if kind == "depth" else 0.0)
+    return img if kind == "rgb" else img[:, :, 0]
+
+
+def plate_frame(path: Path, window: SensorWindow | None) -> tuple[Window, Window, SensorWindow | None]:
+    """The pixels a composite covers, from the plate's windows: ``(frame, display, sensor window)``.
+
+    The frame is the plate's data window within its display window: a plate's overscan lies
+    beyond the sensor the lens was trained on, so it is cut off (logged). A data window inside
+    the display window is a crop of the sensor: ``window`` (the display window's part of the
+    sensor, default all of it) is narrowed to it.
+
+    Raises:
+        ValueError: the data window lies wholly outside the display window.
+    """
+    data, display = image_windows(path)
+    frame = intersect(data, display)
+    if frame is None:
+        raise ValueError(f"{path}: its data window {data} lies outside its display window {display}")
+    if frame != data:
+        log.info("%s: the overscan outside the display window %s is cut off (data window %s)", path, display, data)
+    if frame != display:
+        x, y, w, h = (frame[0] - display[0], frame[1] - display[1], frame[2], frame[3])
+        window = (window or SensorWindow()).crop((y, y + h), (x, x + w), display[3], display[2])
+    return frame, display, window
 
 
 # display-referred outputs: sRGB-encoded integers of this many bits (the rest are linear float)
@@ -124,9 +158,10 @@ PLATE_ATTRIBUTES = ("FramesPerSecond", "smpte:TimeCode", "smpte:KeyCode", "DateT
 
 
 def write_output(path: Path, rgb: np.ndarray, clip_ldr: bool, half: bool = False,
-                 attributes: dict | None = None) -> None:
+                 attributes: dict | None = None, windows: tuple[Window, Window] | None = None) -> None:
     """EXR/TIFF: linear RGB, float32 (``half``: float16, EXR only). PNG/JPEG: sRGB-encoded
-    16/8-bit (values outside [0, 1] need ``clip_ldr``). ``attributes``: header metadata."""
+    16/8-bit (values outside [0, 1] need ``clip_ldr``). ``attributes``: header metadata.
+    ``windows``: the data and display windows (EXR and TIFF; PNG and JPEG hold the pixels only)."""
     bits = _DISPLAY_FORMATS.get(path.suffix.lower())
     if half and path.suffix.lower() != ".exr":
         raise ValueError(f"--half writes float16 EXR files only, got {path}")
@@ -139,7 +174,7 @@ def write_output(path: Path, rgb: np.ndarray, clip_ldr: bool, half: bool = False
         kind = np.uint16 if bits == 16 else np.uint8
         write_image(path, np.round(encoded * np.iinfo(kind).max).astype(kind), attributes, ["R", "G", "B"], f"uint{bits}")
     else:
-        write_image(path, rgb, attributes, ["R", "G", "B"], "float16" if half else "float32")
+        write_image(path, rgb, attributes, ["R", "G", "B"], "float16" if half else "float32", windows)
 
 
 def provenance(model_path: str) -> dict[str, str]:
@@ -161,7 +196,8 @@ def depth_to_metres(values: np.ndarray, unit: str = "m", math: str = "distance",
     ScanlineRender and ZDefocus's "far = 0").
 
     Raises:
-        ValueError: an unknown unit or math, or an inverse depth below 0 (``source`` names it).
+        ValueError: an unknown unit or math, a distance <= 0 or an inverse depth below 0
+            (``source`` names it).
     """
     if unit not in DEPTH_UNITS:
         raise ValueError(f"depth unit must be one of {', '.join(DEPTH_UNITS)}, got {unit!r}")
@@ -172,6 +208,11 @@ def depth_to_metres(values: np.ndarray, unit: str = "m", math: str = "distance",
             values = 1.0 / values.astype(np.float64)
     elif math != "distance":
         raise ValueError(f"depth math must be 'distance' or 'inverse', got {math!r}")
+    elif (values <= 0).any():  # NaN (no depth) passes: it is judged where the render is
+        bad = values <= 0
+        hint = "; 0 at infinity is a 1/distance map: give --depth-math inverse" if (values == 0).any() else ""
+        raise ValueError(f"{source}: depth must be > 0 (inf allowed), got {int(bad.sum())} pixels <= 0 "
+                         f"(min {values[bad].min():g}){hint}")
     return (values * DEPTH_UNITS[unit]).astype(np.float32)
 
 
@@ -221,6 +262,21 @@ def focus_at(curve: tuple[np.ndarray, np.ndarray], frame: int) -> float:
     return float(np.interp(frame, frames, focus))
 
 
+def _in_focus_where_empty(depth: np.ndarray, render: np.ndarray, alpha: np.ndarray, in_focus: float) -> np.ndarray:
+    """Pixels without a depth (NaN: outside the depth file's data window) are given ``in_focus``
+    where the render is empty (no colour, no alpha): nothing there to blur. Elsewhere a missing
+    depth is an error."""
+    missing = np.isnan(depth)
+    if not missing.any():
+        return depth
+    needed = missing & ((alpha > 0) | (render != 0).any(axis=2))
+    if needed.any():
+        y, x = np.argwhere(needed)[0]
+        raise ValueError(f"the depth has no value at {int(needed.sum())} pixels where the render is not empty, "
+                         f"first at column {x}, row {y} of the composite (a data window smaller than the render's, or NaN)")
+    return np.where(missing, np.float32(in_focus), depth)
+
+
 def composite_frame(model: OnnxBokeh, plate: np.ndarray, render: np.ndarray, depth: np.ndarray, alpha: np.ndarray,
                     focus_m: float | None, erode_px: int = 0, feather_px: float = 0.0, clamp_coc: bool = False,
                     window: SensorWindow | None = None, premultiplied: bool = True) -> np.ndarray:
@@ -245,6 +301,7 @@ def composite_frame(model: OnnxBokeh, plate: np.ndarray, render: np.ndarray, dep
     for name, img in (("the plate", plate), ("the render", render)):  # named as the user knows them
         check_finite(name, img)
         check_at_least(name, img, -model.contract.normalization.offset)
+    depth = _in_focus_where_empty(depth, render, alpha, 0.0 if focus_m is None else focus_m)
     a = gaussian_blur(erode(alpha.astype(np.float32), erode_px), feather_px) if erode_px or feather_px else alpha
     colour = render if premultiplied else render * alpha[:, :, None]
     if erode_px or feather_px:  # the colour follows the matte it is cut by
@@ -329,30 +386,32 @@ def main(argv: list[str] | None = None) -> int:
         static: dict[tuple[str, str], np.ndarray] = {}  # inputs without a frame pattern, read once per use
         warned: list[bool] = []  # the depth range is checked on the first frame
 
-        def load(arg: str, frame: int | None, kind: str) -> np.ndarray:
-            if not _PATTERN.search(arg) and (arg, kind) in static:
-                return static[arg, kind]
-            img = read_linear(str(_frame_path(arg, frame)), kind)
+        def load(arg: str, frame: int | None, kind: str, where: Window) -> np.ndarray:
+            key = (arg, kind, where)
+            if not _PATTERN.search(arg) and key in static:
+                return static[key]
+            img = read_linear(str(_frame_path(arg, frame)), kind, where)
             if kind == "depth" and args.depth_math != "coc":
                 img = depth_to_metres(img, args.depth_unit, args.depth_math, str(_frame_path(arg, frame)))
             if not _PATTERN.search(arg):
-                static[arg, kind] = img
+                static[key] = img
             return img
 
         for frame in tqdm(frames, desc="composite", unit="frame", disable=len(frames) < 2):
             focus_m = None if args.depth_math == "coc" else args.focus if curve is None else focus_at(curve, frame)
-            depth = load(args.depth, frame, "depth")
+            plate_path = Path(split_source(str(_frame_path(args.plate, frame)))[0])
+            where, display, frame_window = plate_frame(plate_path, window)
+            depth = load(args.depth, frame, "depth", where)
             if not warned and focus_m is not None and model.contract.lens is not None:  # the first frame's
                 warned.append(warn_if_implausible(depth, model.contract.lens.focal_length_mm, focus_m, str(args.depth)))
-            comp = composite_frame(model, load(args.plate, frame, "rgb"), load(args.render, frame, "rgb"),
-                                   depth, load(args.alpha, frame, "alpha"), focus_m,
-                                   args.erode, args.feather, args.clamp_coc, window, not args.straight)
+            comp = composite_frame(model, load(args.plate, frame, "rgb", where), load(args.render, frame, "rgb", where),
+                                   depth, load(args.alpha, frame, "alpha", where), focus_m,
+                                   args.erode, args.feather, args.clamp_coc, frame_window, not args.straight)
             out = _frame_path(args.out, frame)
-            plate_path = Path(split_source(str(_frame_path(args.plate, frame)))[0])
             attributes = {**image_attributes(plate_path, PLATE_ATTRIBUTES), **made_by}
             if focus_m is not None:
                 attributes["neuralbokeh:focus_m"] = float(focus_m)
-            write_output(out, comp, args.clip_ldr, args.half, attributes)
+            write_output(out, comp, args.clip_ldr, args.half, attributes, (where, display))
             log.info("wrote %s (%s, %d of %d tiles through the network)", out,
                      "the CoC map's blur" if focus_m is None else f"focus {focus_m:.3f} m", model.last_tiles_run, model.num_tiles)
     except (FileNotFoundError, ValueError, OSError) as e:
