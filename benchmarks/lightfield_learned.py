@@ -1,15 +1,20 @@
 """The learned lens on real light-field defocus that no renderer of ours made (the HCI scene).
 
-    python benchmarks/lightfield_learned.py [--minutes 8] [--aperture polygon:6]
+    python benchmarks/lightfield_learned.py [--minutes 8] [--aperture polygon:6] [--mitsuba-scenes 4]
 
 1. Cuts the shared HCI light field (``../shared/data/light_fields/hci_backgammon``, 9 x 9 views
    of 512 x 512) into its four 256 x 256 quadrants and writes each as a scene with
-   ``data_tools.lightfield`` (4 focus settings at the 10-90 % disparity percentiles of the whole
-   scene, one disparity-to-depth mapping so the quadrants share one lens). With ``--aperture``
+   ``data_tools.lightfield`` (4 focus settings uniform between the 2nd and 98th disparity
+   percentile of the whole scene, one disparity-to-depth mapping so the quadrants share one
+   lens). With ``--aperture``
    the views are weighted by that shape (the oracle row is then the scatter with that exact
    discrete aperture); ``--aperture none`` uses every view and declares no aperture.
-2. Trains the default network (``configs/quickstart.toml``) on three quadrants for
-   ``--minutes``.
+   ``--mitsuba-scenes`` procedural scenes are rendered as 9 x 9 light fields by
+   ``data_tools.mitsuba --light-field 9`` (256 x 256, a different image formation: path-traced
+   pinhole views) and written through the same tool, with the same disparity-to-depth mapping
+   and aperture, so that every scene shares one (virtual) lens.
+2. Trains the default network (``configs/quickstart.toml``) on three quadrants and the Mitsuba
+   light fields for ``--minutes``.
 3. Evaluates on the fourth quadrant (``--test-quadrant``, default the bottom right), next to every
    classical baseline of ``neuralbokeh.evaluation``: linear and sRGB PSNR, SSIM, HDR-FLIP, ms/MP.
 
@@ -46,7 +51,8 @@ def make_datasets(work: Path, aperture: str, test: str) -> None:
 
     views, disparity = load_views(HCI), load_disparity(HCI / "gt_disp_lowres.pfm")
     _, alpha, beta = lens_for_disparity(disparity, 9, 256, (1.0, 3.0))
-    focus = ",".join(f"{np.percentile(disparity, q):.4f}" for q in (10, 37, 63, 90))
+    (work / "mapping.txt").write_text(f"{alpha!r} {beta!r}\n")
+    focus = ",".join(f"{d:.4f}" for d in np.linspace(*np.percentile(disparity, [2, 98]), 4))
     for name, (y, x) in QUADRANTS.items():
         np.save(work / f"{name}_views.npy", views[:, :, y:y + 256, x:x + 256])
         np.save(work / f"{name}_disp.npy", disparity[y:y + 256, x:x + 256])
@@ -56,10 +62,26 @@ def make_datasets(work: Path, aperture: str, test: str) -> None:
         run(*args, *([] if aperture == "none" else ["--aperture", aperture]))
 
 
+def mitsuba_scenes(work: Path, count: int, aperture: str, spp: int) -> None:
+    """``count`` Mitsuba light fields into the training set, through the same tool and mapping."""
+    if count == 0:
+        return
+    run("-m", "data_tools.mitsuba", "--out", str(work / "mitsuba_lf"), "--scenes", str(count), "--size", "256", "256",
+        "--light-field", "9", "--spp", str(spp), "--f-number", "1.4", "--seed", "11")
+    mapping = (work / "mapping.txt").read_text().split()
+    for folder in sorted((work / "mitsuba_lf").glob("lf_*")):
+        args = ["-m", "data_tools.lightfield", str(folder), "--pattern", "view_{:03d}.exr", "--disparity",
+                str(folder / "disparity.exr"), "--transfer", "linear", "--out", str(work / "train"), "--name",
+                f"mitsuba_{folder.name}", "--signs", "-1", "-1", "--disparity-to-depth", *mapping]
+        run(*args, *([] if aperture == "none" else ["--aperture", aperture]))
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--minutes", type=float, default=8.0, help="training time")
     p.add_argument("--aperture", default="polygon:6", help="a synthetic aperture for the views, or 'none'")
+    p.add_argument("--mitsuba-scenes", type=int, default=4, help="Mitsuba light fields added to the training set")
+    p.add_argument("--spp", type=int, default=16, help="samples per pixel of each Mitsuba view")
     p.add_argument("--test-quadrant", choices=tuple(QUADRANTS), default="br")
     p.add_argument("--work", type=Path, default=ROOT / "runs" / "lightfield_learned", help="datasets, run and report")
     args = p.parse_args()
@@ -68,6 +90,7 @@ def main() -> None:
     shutil.rmtree(args.work, ignore_errors=True)
     args.work.mkdir(parents=True)
     make_datasets(args.work, args.aperture, args.test_quadrant)
+    mitsuba_scenes(args.work, args.mitsuba_scenes, args.aperture, args.spp)
     run("train.py", "configs/quickstart.toml", "--overwrite", f"data.roots=['{args.work / 'train'}']", "data.test_fraction=0.0",
         "data.cache=true", "train.steps=1000000", "train.lr_schedule='constant'", "train.eval_every=1000000",
         "train.checkpoint_every=200", f"train.out_dir='{args.work / 'run'}'", "--time-limit", str(args.minutes))

@@ -235,13 +235,26 @@ def view_disagreement(views: np.ndarray, disparity: np.ndarray, signs: tuple[int
             out, inside = _shift(view, signs[0] * disp * du[r, c], signs[1] * disp * dv[r, c])
             total, total2, count = total + out * inside, total2 + out * out * inside, count + inside
     count = count.clamp(min=1.0)
-    return float((total2 / count - (total / count) ** 2).mean())
+    return float((total2 / count - (total / count) ** 2).clamp(min=0.0).mean())  # no rounding below 0
+
+
+# the chosen signs' disagreement must be below this share of the next pair's, or the views do not
+# tell (a scene nearly at one disparity, or noise above the parallax); HCI's backgammon gives 0.66
+SIGN_MARGIN = 0.8
 
 
 def estimate_signs(views: np.ndarray, disparity: np.ndarray) -> tuple[tuple[int, int], dict[tuple[int, int], float]]:
-    """The shift signs ``(sx, sy)`` that minimise :func:`view_disagreement`, and every pair's."""
+    """The shift signs ``(sx, sy)`` that minimise :func:`view_disagreement`, and every pair's.
+
+    Raises:
+        ValueError: no pair is clearly best (below ``SIGN_MARGIN`` of the next): give the signs.
+    """
     scores = {(sx, sy): view_disagreement(views, disparity, (sx, sy)) for sx in (1, -1) for sy in (1, -1)}
-    return min(scores, key=scores.get), scores
+    best, second = sorted(scores, key=scores.get)[:2]
+    if not scores[best] < SIGN_MARGIN * scores[second]:
+        raise ValueError(f"the views do not tell which way points move between them (cross-view variance "
+                         f"{scores[best]:.3g} with signs {best}, {scores[second]:.3g} with {second}): give --signs SX SY")
+    return best, scores
 
 
 def lens_for_disparity(disparity: np.ndarray, n: int, width_px: int, depth_range_m: tuple[float, float] | None,
@@ -259,8 +272,8 @@ def lens_for_disparity(disparity: np.ndarray, n: int, width_px: int, depth_range
     d_max, d_min = float(disparity.max()), float(disparity.min())
     if mapping is not None:
         alpha, beta = (float(v) for v in mapping)
-        if not beta > 0 or d_min <= alpha:
-            raise ValueError(f"--disparity-to-depth ALPHA BETA needs BETA > 0 and every disparity above ALPHA "
+        if not beta > 0 or d_min < alpha:
+            raise ValueError(f"--disparity-to-depth ALPHA BETA needs BETA > 0 and every disparity at or above ALPHA "
                              f"(the disparity at infinity), got {alpha:g} {beta:g} for disparities down to {d_min:.4g}")
     else:
         near, far = depth_range_m
@@ -284,7 +297,8 @@ def build_scene(views: np.ndarray, disparity: np.ndarray, out: Path, focus_dispa
     Args:
         views: ``(N, N, H, W, 3)`` linear RGB; disparity ``(H, W)`` px of the centre view.
         out: the scene folder (must not exist).
-        focus_disparities: px; default ``slices`` percentiles (10..90 %) of the disparity.
+        focus_disparities: px; default ``slices`` uniform between the 2nd and 98th percentile
+            of the disparity.
         aperture: a synthetic aperture (shape sampled at the views, cat-eye per pixel); None:
             every view, and the scene declares no aperture.
         signs: the view shift signs; default :func:`estimate_signs`.
@@ -302,13 +316,15 @@ def build_scene(views: np.ndarray, disparity: np.ndarray, out: Path, focus_dispa
     if signs is None:
         signs, scores = estimate_signs(views, disparity)
         log.info("view shift signs %s (cross-view variance %s)", signs, {k: f"{v:.3g}" for k, v in scores.items()})
-    if focus_disparities is None:
-        focus_disparities = [float(np.percentile(disparity, q)) for q in np.linspace(10, 90, slices)]
+    if focus_disparities is None:  # uniform in disparity, so in diopters, over the scene's range
+        lo, hi = np.percentile(disparity, [2, 98])
+        focus_disparities = [float(d) for d in np.linspace(lo, hi, slices)]
     lens, alpha, beta = lens_for_disparity(disparity, n, w, depth_range_m, focal_length_mm, mapping=mapping)
     if min(focus_disparities) <= alpha:
-        raise ValueError(f"focus disparities must be above {alpha:.4g} px (infinity for --depth-range "
-                         f"{depth_range_m[0]:g} {depth_range_m[1]:g}), got {min(focus_disparities):.4g}")
-    depth = (beta / (disparity.astype(np.float64) - alpha))
+        raise ValueError(f"focus disparities must be above {alpha:.4g} px (the disparity at infinity), "
+                         f"got {min(focus_disparities):.4g}")
+    with np.errstate(divide="ignore"):  # a disparity of alpha is at infinity
+        depth = beta / (disparity.astype(np.float64) - alpha)
     weights = view_weights(n, signs, aperture)
     focus_m = [beta / (d0 - alpha) for d0 in focus_disparities]
     cocs = [lens.coc_px(depth, s, w, signed=True) for s in focus_m]
@@ -338,7 +354,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--name", help="the scene folder's name (default: the views' folder name)")
     p.add_argument("--pattern", help="view file names with the view index, e.g. 'view_{:03d}.exr' (k = N row + col)")
     p.add_argument("--transfer", default="srgb", help="the encoding of integer view images: srgb, linear or gamma:G")
-    p.add_argument("--focus-disparities", help="comma-separated focus disparities in px, e.g. --focus-disparities=-1,0.5 (default: 10-90 %% percentiles of the scene's)")
+    p.add_argument("--focus-disparities", help="comma-separated focus disparities in px, e.g. --focus-disparities=-1,0.5 (default: --slices uniform "
+                        "between the 2nd and 98th percentile of the scene's)")
+    p.add_argument("--signs", type=int, nargs=2, choices=(-1, 1), metavar=("SX", "SY"),
+                   help="which way a point moves from view to view: x + SX d (col - c), y + SY d (row - c) (default: "
+                        "found from the views)")
     p.add_argument("--slices", type=int, default=4, help="focus settings when --focus-disparities is not given")
     p.add_argument("--aperture", help="a synthetic aperture sampled at the view positions (disk, polygon:N, heart, "
                                       "mask:FILE, ...); default: every view, no declared aperture")
@@ -374,12 +394,14 @@ def main(argv: list[str] | None = None) -> int:
     new = folder.parent / f".{folder.name}.new"  # the old scene stays until the new one is whole
     shutil.rmtree(new, ignore_errors=True)
     info = build_scene(views, disparity, new, focus, args.slices, aperture, tuple(args.depth_range), args.focal_length,
-                       source=str(args.views), mapping=args.disparity_to_depth)
+                       signs=tuple(args.signs) if args.signs else None, source=str(args.views),
+                       mapping=args.disparity_to_depth)
     shutil.rmtree(folder, ignore_errors=True)
     new.rename(folder)
     lens = info["lens"]
     print(f"scene        {folder}: {views.shape[0]}x{views.shape[1]} views of {views.shape[3]}x{views.shape[2]} px")
-    print(f"view signs   {info['signs']} (chosen by the cross-view variance at the true disparity)")
+    how = "given" if args.signs else "chosen by the cross-view variance at the true disparity"
+    print(f"view signs   {info['signs']} ({how})")
     print("focus        " + ", ".join(f"d0 {d:.3f} px = {s:.3f} m" for d, s in zip(info["focus_disparities_px"], info["focus_m"])))
     print(f"lens         virtual {lens.focal_length_mm:g} mm f/{lens.f_number:.3g}, sensor {lens.sensor_width_mm:g} mm; "
           f"aperture {'none declared' if aperture is None else args.aperture}")

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from data_tools.lightfield import (build_scene, discrete_aperture, estimate_signs, load_disparity, load_views, main,
-                                   refocus, view_offsets, view_weights)
+                                   refocus, view_disagreement, view_offsets, view_weights)
 from neuralbokeh.core.apertures import ApertureModel, parse_aperture
 from neuralbokeh.data.check import check_scene
 from neuralbokeh.data.dataset import load_scene
@@ -109,6 +109,11 @@ def test_bad_inputs_are_one_line_errors(tmp_path):
     views, disparity = _two_planes(tmp_path)
     with pytest.raises(ValueError, match="disparity map is 47x40, the views 48x40"):
         build_scene(views, disparity[:, :47], tmp_path / "x")
+    flat = _plane(0)  # every view the same: nothing tells the signs
+    with pytest.raises(ValueError, match="the views do not tell which way points move between them"):
+        estimate_signs(flat, np.zeros(flat.shape[2:4], np.float32))
+    assert build_scene(flat, np.linspace(0, 1, 48 * 40, dtype=np.float32).reshape(40, 48), tmp_path / "given",
+                       signs=(1, 1))["signs"] == (1, 1)  # given signs are not questioned
     with pytest.raises(SystemExit, match="--cat-eye vignettes a synthetic aperture"):
         main([str(tmp_path / "views.npy"), "--disparity", str(tmp_path / "disp.npy"), "--out", str(tmp_path / "y"),
               "--cat-eye", "0.3"])
@@ -126,8 +131,9 @@ def test_the_hci_scene_loads_upright_and_its_signs_are_clear(shared_data):
     small = views[::2, ::2, 128:384, 128:384]  # 5 x 5 views of the middle, to keep the test short
     signs, scores = estimate_signs(small, disparity[128:384, 128:384] * 2)  # every second view: twice the disparity
     assert signs == (-1, -1) and scores[signs] < 0.8 * min(v for k, v in scores.items() if k != signs), scores
-    flipped = estimate_signs(small, disparity[::-1][128:384, 128:384] * 2)[1]  # the PFM's rows as stored
-    assert min(flipped.values()) > 1.3 * scores[signs]
+    upside_down = np.ascontiguousarray(disparity[::-1][128:384, 128:384] * 2)  # the PFM's rows as stored
+    flipped = [view_disagreement(small, upside_down, (sx, sy)) for sx in (1, -1) for sy in (1, -1)]
+    assert min(flipped) > 1.3 * scores[signs]
 
 
 def test_scenes_of_one_camera_share_a_lens_through_its_disparity_to_depth(tmp_path):
@@ -140,5 +146,5 @@ def test_scenes_of_one_camera_share_a_lens_through_its_disparity_to_depth(tmp_pa
     assert main(base + ["--name", "b", "--focus-disparities=0.5", "--depth-range", "1", "9"]) == 0  # the mapping wins
     assert shared_lens_problems([tmp_path / "ds" / "a", tmp_path / "ds" / "b"]) == []
     assert check_scene(tmp_path / "ds" / "b") == []
-    with pytest.raises(ValueError, match="every disparity above ALPHA"):
-        main(base[:-2] + ["-1", "6", "--name", "c"])
+    with pytest.raises(ValueError, match="every disparity at or above ALPHA"):
+        main(base[:-2] + ["-0.5", "6", "--name", "c"])

@@ -220,3 +220,29 @@ def test_a_square_aperture_renders_a_square(mi):
     lit = img > 0.25 * np.percentile(img[square], 90)
     iou = float((lit & square).sum() / (lit | square).sum())
     assert iou >= 0.9, iou
+
+
+def test_a_rendered_light_field_becomes_a_dataset_scene(mi, tmp_path, capsys):
+    """``--light-field 3``: views across the pupil and their disparity, which the light-field
+    tool turns into a scene that the package's check accepts, the views' signs found."""
+    from data_tools.lightfield import main as lightfield_main
+
+    lf = tmp_path / "lf"
+    assert main(["--out", str(lf), "--scenes", "1", "--planar", "--size", "64", "48", "--light-field", "3", "--spp", "16",
+                 "--f-number", "0.5", "--variant", "scalar_rgb", "--seed", "2"]) == 0  # a wide array: clear parallax
+    hint = capsys.readouterr().out.split("--disparity-to-depth 0 ")[1].split()[0]
+    folder = lf / "lf_00000"
+    assert sorted(p.name for p in folder.iterdir())[:2] == ["depth.exr", "disparity.exr"]
+    assert len(list(folder.glob("view_*.exr"))) == 9
+    meta = json.loads((folder / "lightfield.json").read_text())
+    assert meta["disparity_to_depth"]["beta_px_m"] == pytest.approx(float(hint))
+    args = [str(folder), "--pattern", "view_{:03d}.exr", "--disparity", str(folder / "disparity.exr"), "--transfer", "linear",
+            "--disparity-to-depth", "0", hint, "--out", str(tmp_path / "ds"), "--slices", "2"]
+    assert lightfield_main(args) == 0  # the signs found from the views
+    out = capsys.readouterr().out
+    assert "view signs   (-1, -1) (chosen" in out  # a point moves against the camera, as the CLI's hint says
+    from neuralbokeh.data.check import check_scene
+
+    assert check_scene(tmp_path / "ds" / "lf_00000") == []
+    with pytest.raises(SystemExit, match="odd N >= 3"):
+        main(["--out", str(tmp_path / "x"), "--light-field", "4", "--variant", "scalar_rgb"])

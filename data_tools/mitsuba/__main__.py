@@ -5,7 +5,8 @@ and K defocused slices with their CoC maps, written in the dataset format (one f
 scene, appearing atomically). Procedural scenes by default (deterministic per ``--seed``: scene
 i uses seed ``(seed, i)``), or ``--scene-xml FILE`` for a user's own scene. ``--shard i/n``
 renders scenes ``i, i + n, ...`` only, so n jobs build one dataset; finished scenes are skipped,
-so a rerun resumes.
+so a rerun resumes. ``--light-field N`` renders each scene as an N x N light field instead
+(pinhole views across the lens's entrance pupil, and the disparity) for ``data_tools.lightfield``.
 """
 
 from __future__ import annotations
@@ -24,10 +25,10 @@ from neuralbokeh import __version__
 from neuralbokeh.core.apertures import ApertureModel, parse_aperture
 from neuralbokeh.core.cli import HelpFormatter, run_cli
 from neuralbokeh.data.dataset import write_scene
-from neuralbokeh.core.io import read_image
+from neuralbokeh.core.io import atomic_directory, read_image, write_image, write_json
 from neuralbokeh.core.optics import ThinLens, focus_sweep_m
 
-from .render import METHODS, choose_method, render_aif, mitsuba_defocus, render_depth
+from .render import METHODS, choose_method, mitsuba_defocus, render_aif, render_depth, render_light_field
 from .scenes import Camera, MitsubaSceneParams, camera_from_xml, fov_for_lens, procedural_scene
 
 log = logging.getLogger("data_tools.mitsuba")
@@ -63,7 +64,7 @@ def scene_focus(depth_m: np.ndarray, slices: int, lens: ThinLens) -> list[float]
 
 def render_one(mi: Any, index: int, opts: dict[str, Any], xml_scene: Any = None) -> dict[str, Any]:
     """Render and write scene ``index``; returns a summary."""
-    folder = Path(opts["out"]) / f"scene_{index:05d}"
+    folder = Path(opts["out"]) / (f"lf_{index:05d}" if opts["light_field"] else f"scene_{index:05d}")
     if folder.exists():
         return {"index": index, "skipped": True}
     lens, aperture, camera = opts["lens"], opts["aperture"], opts["camera"]
@@ -75,6 +76,8 @@ def render_one(mi: Any, index: int, opts: dict[str, Any], xml_scene: Any = None)
         scene, description = xml_scene, {"xml": str(opts["scene_xml"]), "unit_m": opts["unit_m"]}
     seed = int(rng.integers(2**31))
     t0 = time.perf_counter()
+    if opts["light_field"]:
+        return write_light_field(mi, scene, index, opts, seed, description)
     aif = render_aif(mi, scene, camera, opts["aif_spp"], seed=seed)
     depth = render_depth(mi, scene, camera) * opts["unit_m"]
     focus = opts["focus"] or scene_focus(depth, opts["slices"], lens)
@@ -93,6 +96,31 @@ def render_one(mi: Any, index: int, opts: dict[str, Any], xml_scene: Any = None)
     write_scene(folder, aif.astype(np.float32), depth, [d.astype(np.float32) for d in defocus], cocs, lens, focus,
                 aperture, generator)
     return {"index": index, "skipped": False, "spp": [s["spp"] for s in slices]}
+
+
+def light_field_beta(lens: ThinLens, camera: Camera, n: int) -> float:
+    """``BETA`` (px m) of ``depth = BETA / disparity`` for the views of :func:`render_light_field`."""
+    return camera.width / (2.0 * camera.tan_half_x) * lens.aperture_diameter_mm / 1000.0 / n
+
+
+def write_light_field(mi: Any, scene: Any, index: int, opts: dict[str, Any], seed: int, description: Any) -> dict[str, Any]:
+    """Render scene ``index`` as an N x N light field into ``lf_NNNNN/`` (``view_000.exr`` ...,
+    ``disparity.exr``, ``depth.exr``, ``lightfield.json``), the folder appearing whole."""
+    lens, camera, n = opts["lens"], opts["camera"], opts["light_field"]
+    t0 = time.perf_counter()
+    views, disparity, depth = render_light_field(mi, scene, camera, lens, n, opts["spp"], seed, opts["unit_m"])
+    with atomic_directory(Path(opts["out"]) / f"lf_{index:05d}") as tmp:
+        for k, view in enumerate(views.reshape(n * n, *views.shape[2:])):
+            write_image(tmp / f"view_{k:03d}.exr", view.astype(np.float32))
+        write_image(tmp / "disparity.exr", disparity.astype(np.float32))
+        write_image(tmp / "depth.exr", depth.astype(np.float32))
+        write_json(tmp / "lightfield.json", {
+            "views": n, "view_index": "k = N row + col, row 0 at the top", "lens": lens.to_dict(),
+            "disparity_to_depth": {"alpha_px": 0.0, "beta_px_m": light_field_beta(lens, camera, n)},
+            "generator": {"name": "data_tools.mitsuba", "version": __version__, "mitsuba": mi.__version__,
+                          "variant": mi.variant(), "seed": opts["seed"], "scene_index": index, "spp": opts["spp"],
+                          "scene": description, "seconds": round(time.perf_counter() - t0, 3)}})
+    return {"index": index, "skipped": False, "spp": [opts["spp"]]}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -122,6 +150,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--noise-target", type=float, default=None,
                    help="stop a slice once its estimated noise (RMS std error, tone-mapped) is below this, e.g. 0.005")
     p.add_argument("--rounds", type=int, default=4, help="rounds the spp budget is split into (noise estimate)")
+    p.add_argument("--light-field", type=int, default=0, metavar="N",
+                   help="render N x N pinhole views across the lens's entrance pupil (odd N) and the disparity, for "
+                        "data_tools.lightfield, instead of focal stacks (--spp per view)")
     p.add_argument("--method", choices=METHODS, default="auto", help="defocus: thinlens sensor (disk) or pinhole accumulation (any)")
     p.add_argument("--max-depth", type=int, default=4, help="path length of the procedural scenes' integrator")
     p.add_argument("--seed", type=int, default=0, help="dataset seed")
@@ -136,6 +167,8 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     try:
         shard = parse_shard(args.shard)
+        if args.light_field and (args.light_field < 3 or args.light_field % 2 == 0):
+            raise ValueError(f"--light-field N needs an odd N >= 3 (the centre view is the all-in-focus image), got {args.light_field}")
         if args.scenes < 1 or args.slices < 1:
             raise ValueError(f"--scenes and --slices must be >= 1, got {args.scenes} and {args.slices}")
         if min(args.size) < 1:
@@ -173,7 +206,8 @@ def main(argv: list[str] | None = None) -> int:
     opts = {"out": str(args.out), "seed": args.seed, "lens": lens, "aperture": aperture, "camera": cam, "scene_params": params,
             "focus": sorted(args.focus) if args.focus else None, "slices": args.slices, "spp": args.spp, "aif_spp": args.aif_spp,
             "noise_target": args.noise_target, "rounds": args.rounds, "method": args.method, "max_depth": args.max_depth,
-            "scene_xml": args.scene_xml, "planar": args.planar, "unit_m": args.unit_m if args.scene_xml else 1.0}
+            "scene_xml": args.scene_xml, "planar": args.planar, "unit_m": args.unit_m if args.scene_xml else 1.0,
+            "light_field": args.light_field}
     t0 = time.perf_counter()
     results = []
     for index in tqdm(indices, desc=f"shard {shard[0]}/{shard[1]}", unit="scene"):
@@ -186,6 +220,10 @@ def main(argv: list[str] | None = None) -> int:
     if spp:
         print(f"spp/slice    median {int(np.median(spp))}, min {min(spp)}, max {max(spp)} (budget {args.spp})")
     print(f"time         {elapsed:.1f} s ({elapsed / max(len(written), 1):.2f} s per written scene)")
+    if args.light_field:
+        print(f"light fields python -m data_tools.lightfield {args.out}/lf_NNNNN --pattern 'view_{{:03d}}.exr' --disparity "
+              f"{args.out}/lf_NNNNN/disparity.exr --transfer linear --signs -1 -1 --disparity-to-depth 0 "
+              f"{light_field_beta(lens, cam, args.light_field):.9g} --out DATASET (one lens for all)")
     return 0
 
 

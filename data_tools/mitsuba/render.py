@@ -272,6 +272,41 @@ def mitsuba_defocus(mi: ModuleType, scene: Any, camera: Camera, lens: ThinLens, 
     return SliceResult(image, spent, _noise(images), len(images), method)
 
 
+def render_light_field(mi: ModuleType, scene: Any, camera: Camera, lens: ThinLens, n: int, spp: int, seed: int = 0,
+                       unit_m: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """An N x N light field through the lens's entrance pupil: pinhole views from the centres of
+    the pupil square's N x N cells (a parallel camera array; view ``(row, col)``, row 0 at the
+    top, col 0 at the left), and the centre view's depth and disparity.
+
+    Args:
+        lens: its entrance pupil (``f / N``) is the array's extent; the pupil square's side.
+        n: views per side, odd, >= 3.
+        spp: samples per pixel of every view (anti-aliasing and the integrator's noise).
+
+    Returns:
+        ``(views (N, N, H, W, 3), disparity (H, W) px between neighbouring views (0 at infinity,
+        larger = nearer), depth (H, W) m)``, float64.
+    """
+    if n < 3 or n % 2 == 0:
+        raise ValueError(f"a light field needs an odd number >= 3 of views per side, got {n}")
+    check_at_least("spp", spp, 1)
+    step = lens.aperture_diameter_mm / 1000.0 / n / unit_m  # the views' spacing, scene units
+    sensor = _load_sensor(mi, _sensor(camera, spp))
+    params = mi.traverse(sensor)
+    c = (n - 1) / 2.0
+    views = np.zeros((n, n, camera.height, camera.width, 3))
+    for row in range(n):
+        for col in range(n):  # the pupil's u (right) and v (up) of the cell, as mitsuba_defocus moves the camera
+            u, v = (col - c) * step, (c - row) * step
+            params["to_world"] = mi.ScalarTransform4f((camera.to_world @ _translate(-u, v)).tolist())
+            params.update()
+            views[row, col] = _numpy(mi.render(scene, sensor=sensor, spp=spp, seed=_seed(seed, row, col)))[..., :3]
+    depth = render_depth(mi, scene, camera) * unit_m
+    focal_px = camera.width / (2.0 * camera.tan_half_x)
+    disparity = focal_px * step * unit_m / depth  # +inf depth: 0
+    return views, disparity, depth
+
+
 def _seed(*parts: int) -> int:
     """A 32-bit sampler seed from integers (Mitsuba's seeds are unsigned 32-bit)."""
     return int(np.random.SeedSequence([int(p) for p in parts]).generate_state(1)[0])
