@@ -94,8 +94,8 @@ def main(argv: list[str] | None = None) -> int:
             reasons.add(str(e).removeprefix(f"{stack}: "))
             continue
         rows.append(row or {"stack": stack.name, "skipped": True})
-    if not rows and len(reasons) == 1 and len(failures) == len(args.stacks):
-        raise SystemExit(f"error: {failures[0] if len(failures) == 1 else f'{reasons.pop()} (all {len(failures)} stacks)'}")
+    if len(args.stacks) > 1 and not rows and len(reasons) == 1 and len(failures) == len(args.stacks):
+        raise SystemExit(f"error: {reasons.pop()} (all {len(failures)} stacks)")  # the options, not the data
     for r in rows:
         if r.get("skipped"):
             print(f"{r['stack']:<24} already written, skipped")

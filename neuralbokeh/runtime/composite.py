@@ -383,7 +383,7 @@ def main(argv: list[str] | None = None) -> int:
         level = args.graph_optimization if args.graph_optimization != "auto" else "off" if len(frames) == 1 else "basic"
         model = OnnxBokeh(args.model, threads=args.threads, skip_in_focus=not args.no_skip, optimization=level)
         made_by = provenance(args.model)
-        static: dict[tuple[str, str], np.ndarray] = {}  # inputs without a frame pattern, read once per use
+        static: dict[tuple[str, str, Window], np.ndarray] = {}  # inputs without a frame pattern, read once per use
         warned: list[bool] = []  # the depth range is checked on the first frame
 
         def load(arg: str, frame: int | None, kind: str, where: Window) -> np.ndarray:
