@@ -350,15 +350,24 @@ class FocalStackDataset(torch.utils.data.Dataset):
         window = SensorWindow.from_dict(meta.get("sensor_window"))
         if rows is not None:
             window = window.crop(rows, cols, size["height"], size["width"])
+        full = (size["height"], size["width"])
         return {
             "aif": chw(aif),
             "coc": chw(coc),
             "defocus": chw(defocus),
             "window": torch.tensor([window.left, window.top, window.width, window.height], dtype=torch.float32),
+            "cut_sides": cut_sides(rows or (0, full[0]), cols or (0, full[1]), *full),
             "scene": folder.name,
             "slice": k,
             "focus_m": float(sl["focus_m"]),
         }
+
+
+def cut_sides(rows: Sequence[int], cols: Sequence[int], height: int, width: int) -> torch.Tensor:
+    """``(4,)`` bool: which sides (top, bottom, left, right) of the crop ``rows`` x ``cols``
+    (``[start, stop)`` px) of a ``height`` x ``width`` frame cut through the frame. Next to such a
+    side the defocused target holds light from beyond the crop that the crop's input lacks."""
+    return torch.tensor([rows[0] > 0, rows[1] < height, cols[0] > 0, cols[1] < width])
 
 
 def random_crop_place(size: Sequence[int], crop: Sequence[int], generator: torch.Generator) -> tuple[int, int]:

@@ -44,7 +44,7 @@ from ..core.io import write_json
 from ..core.normalization import Normalization
 from ..data.check import require_sound
 from ..core.optics import SensorWindow
-from ..data.dataset import FocalStackDataset, random_crop_place
+from ..data.dataset import FocalStackDataset, cut_sides, random_crop_place
 from ..networks import build_model
 from ..render import scatter_defocus
 from .config import TrainConfig
@@ -65,12 +65,47 @@ def run_model(model: torch.nn.Module, x: torch.Tensor, window: torch.Tensor | No
 
 
 def compute_loss(model: torch.nn.Module, x: torch.Tensor, y: torch.Tensor, kind: str,
-                 window: torch.Tensor | None = None) -> torch.Tensor:
-    """MSE of the reassembled image (``"image"``) or of the un-blended tiles (``"tile"``)."""
+                 window: torch.Tensor | None = None, weights: torch.Tensor | None = None) -> torch.Tensor:
+    """MSE of the reassembled image (``"image"``) or of the un-blended tiles (``"tile"``), over
+    the pixels where ``weights`` ``(B, 1, H, W)`` is 1 (all when None; see :func:`loss_weights`)."""
     if kind == "tile":
         inner = model.module if isinstance(model, DistributedDataParallel) else model
-        return F.mse_loss(run_model(model, x, window, return_tiles=True), inner.tile_targets(y))
-    return F.mse_loss(run_model(model, x, window), y)
+        pred, y = run_model(model, x, window, return_tiles=True), inner.tile_targets(y)
+        weights = None if weights is None else inner.tile_targets(weights)
+    else:
+        pred = run_model(model, x, window)
+    if weights is None:
+        return F.mse_loss(pred, y)
+    return ((pred - y).square() * weights).sum() / (weights.sum() * y.shape[1]).clamp_min(1.0)
+
+
+def crop_loss_margin(crop: list[int] | None, max_coc_px: float) -> int:
+    """How far (px) the loss stays from a side where a training crop cuts its frame: the largest
+    CoC radius of the data (0 without crops). ``ValueError`` if that leaves a crop no pixel."""
+    if not crop:
+        return 0
+    margin = math.ceil(max_coc_px / 2.0)
+    if min(crop) <= 2 * margin:
+        raise ValueError(f"data.crop = {list(crop)} px leaves no pixel for the loss: the loss stays "
+                         f"{margin} px (the largest CoC radius) from each side where a crop cuts its frame; "
+                         f"use crops larger than {2 * margin} px")
+    return margin
+
+
+def loss_weights(cut: torch.Tensor, size: tuple[int, int], margin_px: int) -> torch.Tensor | None:
+    """``(B, 1, H, W)``: 0 within ``margin_px`` of each side where a crop cuts through its frame
+    (``cut`` ``(B, 4)``: top, bottom, left, right, as :func:`~neuralbokeh.data.dataset.cut_sides`),
+    1 elsewhere; None when no crop of the batch cuts its frame. Light from beyond such a side
+    reaches the target up to the largest CoC radius in, and the crop's input cannot show it: a
+    loss there would teach the lens to make up light that is not in its input."""
+    if margin_px <= 0 or not bool(cut.any()):
+        return None
+    h, w = size
+    rows, cols = torch.arange(h, device=cut.device), torch.arange(w, device=cut.device)
+    top, bottom, left, right = (cut[:, k, None] for k in range(4))
+    keep_r = ~((top & (rows < margin_px)) | (bottom & (rows >= h - margin_px)))
+    keep_c = ~((left & (cols < margin_px)) | (right & (cols >= w - margin_px)))
+    return (keep_r[:, :, None] & keep_c[:, None, :]).to(torch.float32)[:, None]
 
 
 def param_groups(model: torch.nn.Module, scaling: str, field_lr_scale: float = 1.0) -> list[dict[str, Any]]:
@@ -116,11 +151,13 @@ class Samples:
         return it
 
     def batch(self, indices: list[int], device: torch.device, seed: int = 0,
-              ) -> tuple[torch.Tensor, torch.Tensor, list[str], torch.Tensor]:
-        """``(x (B, 4, h, w), y (B, 3, h, w), names, windows (B, 4))``; the crops' places are a
-        function of ``seed`` (the step) alone, so a resumed run cuts the same crops."""
+              ) -> tuple[torch.Tensor, torch.Tensor, list[str], torch.Tensor, torch.Tensor]:
+        """``(x (B, 4, h, w), y (B, 3, h, w), names, windows (B, 4), cut (B, 4))``, ``cut``: the
+        sides where a crop cuts through its frame (:func:`~neuralbokeh.data.dataset.cut_sides`);
+        the crops' places are a function of ``seed`` (the step) alone, so a resumed run cuts the
+        same crops."""
         g = torch.Generator().manual_seed(seed)
-        xs, ys, windows, names = [], [], [], []
+        xs, ys, windows, names, cuts = [], [], [], [], []
         for i in indices:
             if self.crop and not self.cache:  # read the crop's rows only
                 it = self.ds.crop_item(i, self.crop, g)
@@ -131,8 +168,10 @@ class Samples:
             xs.append(torch.cat([it["aif"], it["coc"]], 0))
             ys.append(it["defocus"])
             windows.append(it["window"])
+            cuts.append(it["cut_sides"])
             names.append(f"{it['scene']}#{it['slice']}")
-        return torch.stack(xs).to(device), torch.stack(ys).to(device), names, torch.stack(windows).to(device)
+        return (torch.stack(xs).to(device), torch.stack(ys).to(device), names, torch.stack(windows).to(device),
+                torch.stack(cuts).to(device))
 
 
 def random_crop(item: dict[str, Any], size: list[int], generator: torch.Generator) -> dict[str, Any]:
@@ -144,7 +183,8 @@ def random_crop(item: dict[str, Any], size: list[int], generator: torch.Generato
     (h, w), cut = size, (slice(None), slice(r, r + size[0]), slice(c, c + size[1]))
     window = SensorWindow(*(float(v) for v in item["window"])).crop((r, r + h), (c, c + w), *full)
     return {**item, "aif": item["aif"][cut], "coc": item["coc"][cut], "defocus": item["defocus"][cut],
-            "window": torch.tensor([window.left, window.top, window.width, window.height], dtype=torch.float32)}
+            "window": torch.tensor([window.left, window.top, window.width, window.height], dtype=torch.float32),
+            "cut_sides": cut_sides((r, r + h), (c, c + w), *full)}
 
 
 def _metrics(pred: torch.Tensor, target: torch.Tensor) -> tuple[float, float]:
@@ -174,7 +214,7 @@ def held_out_baselines(ds: FocalStackDataset, samples: Samples | None = None,
     names = ("identity", "gaussian") + (("oracle",) if exact else ())
     sums = {f"{n}_{m}": 0.0 for n in names for m in ("psnr", "ssim")}
     for i in range(len(ds)):
-        x, y, _, _ = samples.batch([i], device)
+        x, y, _, _, _ = samples.batch([i], device)
         linear, coc = norm.decode(x[:, :3].double()), x[:, 3:].double() * scale
         preds = {"identity": x[:, :3], "gaussian": norm.encode(scatter_defocus(linear, coc, gauss)).float()}
         if exact:
@@ -195,7 +235,7 @@ def held_out_metrics(model: torch.nn.Module, samples: Samples, device: torch.dev
     model.eval()
     sums = {"eval_psnr": 0.0, "eval_ssim": 0.0}
     for i in range(len(samples.ds)):  # whole frames, each with its own sensor window
-        x, y, _, window = samples.batch([i], device)
+        x, y, _, window, _ = samples.batch([i], device)
         p, s = _metrics(run_model(model, x, window), y)
         sums["eval_psnr"] += p
         sums["eval_ssim"] += s
@@ -305,6 +345,7 @@ def _train(
     if steps_per_epoch < 1:
         raise ValueError(f"{len(train_ds)} training samples are too few for batch_size {t.batch_size}")
     samples = Samples(train_ds, cfg.data.cache, cfg.data.crop)
+    margin_px = crop_loss_margin(cfg.data.crop, train_ds.max_coc_px)
     test_samples = Samples(test_ds, cfg.data.cache) if test_ds else None
 
     lead = proc.rank == 0
@@ -332,9 +373,10 @@ def _train(
             if epoch != order_epoch:
                 sampler.set_epoch(epoch)
                 order, order_epoch = list(sampler), epoch
-            x, y, names, window = samples.batch(order[pos * per_rank : (pos + 1) * per_rank], proc.device,
-                                                seed=t.seed * 1_000_003 + step * 101 + proc.rank)
-            loss, finite = _step(net, model, optimizer, x, y, window, cfg, step, proc)
+            x, y, names, window, cut = samples.batch(order[pos * per_rank : (pos + 1) * per_rank], proc.device,
+                                                     seed=t.seed * 1_000_003 + step * 101 + proc.rank)
+            weights = loss_weights(cut, tuple(y.shape[-2:]), margin_px)
+            loss, finite = _step(net, model, optimizer, x, y, window, weights, cfg, step, proc)
             if not finite:
                 skipped += 1
                 consecutive += 1
@@ -385,14 +427,14 @@ def _train(
 
 
 def _step(net: torch.nn.Module, model: torch.nn.Module, optimizer: torch.optim.Optimizer, x: torch.Tensor, y: torch.Tensor,
-          window: torch.Tensor, cfg: TrainConfig, step: int, proc: _Process) -> tuple[float, bool]:
+          window: torch.Tensor, weights: torch.Tensor | None, cfg: TrainConfig, step: int, proc: _Process) -> tuple[float, bool]:
     """One optimiser step (skipped, on every rank, when any rank's loss or gradient is not
     finite); returns ``(loss, finite)``."""
     t = cfg.train
     for group in optimizer.param_groups:  # the schedule is a function of the step alone
         group["lr"] = group["lr_scale"] * t.lr * _lr_factor(step, cfg)
     optimizer.zero_grad(set_to_none=True)
-    loss = compute_loss(net, x, y, t.loss, window)
+    loss = compute_loss(net, x, y, t.loss, window, weights)
     loss.backward()
     finite = torch.tensor(
         [float(torch.isfinite(loss)) * float(all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None))],
