@@ -5,8 +5,8 @@
 Writes into ``--out``: ``plate.exr`` (the scene's defocused slice: a photograph taken through
 the lens), ``render.exr`` (procedural cut-outs and HDR highlights over black, all in focus),
 ``depth.exr`` (their planar depth in metres, ``inf`` where there is nothing), ``alpha.exr``
-(their coverage) and prints the ``neuralbokeh.runtime.composite`` command with the slice's focus
-distance. The CG layer has the plate's size, so a model trained on the dataset applies.
+(their coverage), ``focus_m.txt`` (the slice's focus distance in metres, for ``--focus``) and prints
+the ``neuralbokeh.runtime.composite`` command with it. The CG layer has the plate's size, so a model trained on the dataset applies.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ import numpy as np
 
 from neuralbokeh.core.cli import HelpFormatter, run_cli
 from neuralbokeh.data.dataset import load_scene
-from neuralbokeh.core.io import write_image
+from neuralbokeh.core.io import write_image, write_text
 
 from .procedural import SceneParams, composite_sharp, make_layers
 
@@ -51,8 +51,9 @@ def main(argv: list[str] | None = None) -> int:
     for name, img in (("plate", plate), ("render", render), ("depth", depth), ("alpha", alpha)):
         write_image(args.out / f"{name}.exr", img.astype(np.float32))
     focus = meta["slices"][args.slice]["focus_m"]
+    write_text(args.out / "focus_m.txt", f"{focus:.6g}\n")
     o = args.out
-    print(f"wrote {o}/plate.exr, render.exr, depth.exr, alpha.exr ({w}x{h}); the plate is focused at {focus:.3f} m")
+    print(f"wrote {o}/plate.exr, render.exr, depth.exr, alpha.exr, focus_m.txt ({w}x{h}); the plate is focused at {focus:.3f} m")
     print(f"composite: .venv/bin/python -m neuralbokeh.runtime.composite --model MODEL.onnx --plate {o}/plate.exr "
           f"--render {o}/render.exr --depth {o}/depth.exr --alpha {o}/alpha.exr --focus {focus:.3f} --out {o}/comp.exr")
     return 0

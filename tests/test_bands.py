@@ -10,7 +10,7 @@ import torch
 from neuralbokeh.checkpoint import load_model
 from neuralbokeh.core.bands import BandPlan, active_bands, band_diameters, lattice_step
 from neuralbokeh.export.exporter import plate_model
-from neuralbokeh.networks.lens import _gate
+from neuralbokeh.networks.lens import band_gates
 from neuralbokeh.runtime import OnnxBokeh
 from neuralbokeh.runtime.onnx_model import METADATA_KEY
 
@@ -60,12 +60,12 @@ def test_the_file_carries_the_plate_plan_and_the_runtime_plans_with_it(busy_chec
     coc = g.uniform(-1.0, 1.0, (1, m.height, m.width)) * want.c_plan_px / 3  # a third of the range,
     coc[..., : m.width // 2] = 0.0  # and the left half in focus
     flags = active_bands(coc, want, m.layout)
-    pos = want.position(torch.from_numpy(coc).float())
+    gates = band_gates(torch.from_numpy(coc).float(), want.c_plan_px, want.blocks)  # the network's own
     for n in range(1, want.blocks + 1):
         for k in range(m.num_tiles):
             r0, r1, c0, c1 = m.layout.source_region(k, m.height, m.width)
-            region = pos[:, r0:r1, c0:c1]
+            region = gates[:, r0:r1, c0:c1, n]
             for side, sel in enumerate((coc[:, r0:r1, c0:c1] > 0, coc[:, r0:r1, c0:c1] < 0)):
-                used = bool(((_gate(region, n) > 0) & torch.from_numpy(sel)).any())
+                used = bool(((region > 0) & torch.from_numpy(sel)).any())
                 assert flags[k, n - 1, side] >= used, (n, k, side)
     assert flags.sum() < flags.size  # and something was left out

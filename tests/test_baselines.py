@@ -12,7 +12,7 @@ from neuralbokeh.core.apertures import ApertureModel, Disk, MaskAperture, Polygo
 from neuralbokeh.render import scatter_defocus
 from neuralbokeh.render.baselines import gather_defocus, pseudo_ray_trace
 from neuralbokeh.render.buckets import bucket_gather
-from neuralbokeh.render.lens_trace import _refract, hidden_layer, lens_ray_trace, singlet_zone_profile
+from neuralbokeh.render.lens_trace import refract, hidden_layer, lens_ray_trace, singlet_zone_profile
 from neuralbokeh.render.pyramid import gaussian_spread_reference, pyramid_spread, quadtree_sites, tensor_filter
 
 SIZE = 48
@@ -135,7 +135,7 @@ def test_tensor_filter_step_edge_and_quadtree_sites():
 
 def test_snell_refraction_and_singlet_profile():
     d = np.array([[np.sin(0.3), np.cos(0.3)]])
-    out = _refract(d, np.array([[0.0, -1.0]]), 1.0 / 1.5)
+    out = refract(d, np.array([[0.0, -1.0]]), 1.0 / 1.5)
     assert np.sin(0.3) == pytest.approx(1.5 * out[0, 0] / np.linalg.norm(out[0]))
     rho = np.linspace(0, 1, 11)
     g = singlet_zone_profile(rho)

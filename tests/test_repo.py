@@ -104,7 +104,7 @@ def test_torch_free_wing_never_imports_torch():
 
 
 def test_networks_are_pure_definitions():
-    # the networks know nothing of files, datasets or training (DESIGN.md)
+    # the networks know nothing of files, datasets or training (docs/design.md)
     for path in (ROOT / "neuralbokeh" / "networks").rglob("*.py"):
         imports = _imports(path)
         assert not any(n.rsplit(".", 1)[-1] in ("io", "cli") or n.startswith("OpenImageIO") for n in imports), (path, imports)
@@ -118,3 +118,44 @@ def test_library_never_imports_the_tools_and_never_prints():
             continue
         calls = [n for n in ast.walk(ast.parse(path.read_text())) if isinstance(n, ast.Call)]
         assert not any(isinstance(c.func, ast.Name) and c.func.id == "print" for c in calls), f"print() in {path}"
+
+
+def _module_graph() -> dict[str, set[str]]:
+    """Each module of ``neuralbokeh`` and ``data_tools`` -> the modules of the two it imports,
+    deferred imports inside functions included."""
+    paths = {}
+    for top in ("neuralbokeh", "data_tools"):
+        for path in (ROOT / top).rglob("*.py"):
+            rel = path.relative_to(ROOT).with_suffix("")
+            paths[".".join(rel.parts[:-1] if rel.name == "__init__" else rel.parts)] = path
+    graph = {}
+    for name, path in paths.items():
+        package = name.split(".") if path.name == "__init__.py" else name.split(".")[:-1]
+        deps = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                deps |= {a.name for a in node.names}
+            elif isinstance(node, ast.ImportFrom):
+                base = package[: len(package) - node.level + 1] if node.level else []
+                full = ".".join(base + ([node.module] if node.module else []))
+                deps |= {full} | {f"{full}.{a.name}" for a in node.names}
+        graph[name] = {d for d in deps if d in paths and d != name}
+    return graph
+
+
+def test_no_module_cycle():
+    """No module reaches itself through imports (a deferred import does not hide a cycle)."""
+    graph, done, path = _module_graph(), set(), []
+
+    def visit(module: str) -> None:
+        path.append(module)
+        for dep in sorted(graph[module]):
+            assert dep not in path, "import cycle: " + " -> ".join(path[path.index(dep):] + [dep])
+            if dep not in done:
+                visit(dep)
+        path.pop()
+        done.add(module)
+
+    for module in sorted(graph):
+        if module not in done:
+            visit(module)

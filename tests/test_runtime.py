@@ -140,7 +140,7 @@ def test_bands_no_pixel_of_a_tile_uses_are_left_out_exactly(busy_onnx, busy_chec
 def test_active_bands_hold_every_band_the_network_uses(busy_onnx, busy_checkpoint):
     """The runtime's band flags (numpy, float64) cover the PyTorch model's own test (float32), at
     band centres and edges too, where the two could round differently."""
-    from neuralbokeh.networks.lens import _gate
+    from neuralbokeh.networks.lens import band_gates
     from neuralbokeh.ops.tiles import tile
 
     m = OnnxBokeh(busy_onnx, threads=1)
@@ -154,11 +154,11 @@ def test_active_bands_hold_every_band_the_network_uses(busy_onnx, busy_checkpoin
     coc = g.choice(levels, (2, m.height, m.width)) * g.choice([-1.0, 1.0], (2, m.height, m.width))
     flags = m.active_bands(coc)
     c = tile(torch.from_numpy(coc[:, None] / c_max).float(), layout) * c_max  # (B, T, win, win)
-    pos = model.plan(c_max).position(c)
+    gates = band_gates(c, c_max, cfg.blocks)  # the network's own
     src = model.source_masks(layout, c.device, c.dtype)
     for n in range(1, cfg.blocks + 1):
         for side, sel in enumerate((c > 0, c < 0)):
-            used = ((_gate(pos, n) * sel * src[None, :, 0]).flatten(2).amax(-1) > 0).any(0).numpy()
+            used = ((gates[..., n] * sel * src[None, :, 0]).flatten(2).amax(-1) > 0).any(0).numpy()
             assert not (used & ~flags[:, n - 1, side]).any(), (n, side)
     one = m.active_bands(np.full((1, m.height, m.width), (d[2] + d[3]) / 2))  # between bands 2 and 3, behind
     assert one[:, [1, 2], 0].all() and one.sum() == 2 * m.num_tiles  # and nothing else

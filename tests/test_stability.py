@@ -12,7 +12,9 @@ NaN/inf inputs are covered through the runtime in ``test_runtime.py`` and below.
 import numpy as np
 import pytest
 import torch
+from conftest import busy
 
+from neuralbokeh.export.exporter import DEFAULT_TOLERANCE as TOLERANCE
 from neuralbokeh.export.exporter import export_checkpoint, plate_model, probe_inputs, run_session
 from neuralbokeh.runtime.onnx_model import make_session as session
 from neuralbokeh.networks import ModelConfig, build_model
@@ -22,23 +24,17 @@ from neuralbokeh.core.optics import SensorWindow, ThinLens
 from neuralbokeh.checkpoint import load_model
 from neuralbokeh.checkpoint import save_checkpoint
 
-TOLERANCE = {False: 1e-4, True: 2e-2}
-
 
 def _random_checkpoint(path, height, width, architecture, blocks=3):
-    torch.manual_seed(height * 1000 + width)
+    """A ``height`` x ``width`` network of ``architecture`` made busy as the suite's shared
+    checkpoints are (``conftest.busy``)."""
     cfg = ModelConfig(blocks=blocks, features=4, tile=16, overlap=4, architecture=architecture)
     contract = Contract(height, width, Normalization(), 7.0, 7.0, ThinLens(50.0, 2.0, 36.0))
-    model = build_model(cfg, contract)
-    with torch.no_grad():
-        for name, p in model.named_parameters():
-            if name.startswith("c2.") or ".conv_b." in name:
-                p.copy_(0.3 * torch.randn_like(p) / max(1, p[0].numel()) ** 0.5)
-            elif name == "pupil_field":
-                p.add_(1.5 * torch.randn_like(p))
-    save_checkpoint(path, {"model_config": cfg.to_dict(), "model_state": model.state_dict(),
-                           "contract": contract.to_dict(), "step": 0})
-    return path
+    torch.manual_seed(height * 1000 + width)
+    plain = save_checkpoint(path.with_name(path.stem + "_plain.pt"), {
+        "model_config": cfg.to_dict(), "model_state": build_model(cfg, contract).state_dict(),
+        "contract": contract.to_dict(), "step": 0})
+    return busy(plain, path, seed=height * 1000 + width)
 
 
 @pytest.fixture(scope="module", params=[f"{a}_{c}" for a in ("lens", "paper")

@@ -49,7 +49,7 @@ from neuralbokeh.core.apertures import ApertureModel, Disk, field_position, pupi
 from neuralbokeh.core.checks import check_at_least, check_positive
 from neuralbokeh.core.optics import ThinLens
 
-from .scenes import Camera
+from .camera import Camera
 
 NEAR_CLIP = 0.01  # scene units
 METHODS = ("auto", "thinlens", "accumulate")

@@ -1,6 +1,6 @@
 """The ONNX graph of the lens architecture (:mod:`neuralbokeh.networks.lens`), from its kernels (onnx + numpy).
 
-Built op by op rather than traced from the module: the traced graphs are slower (README,
+Built op by op rather than traced from the module: the traced graphs are slower (docs/runtime.md,
 "Where the lens maths lives"; ``benchmarks/bench_traced_export.py``). Its rules come from the module's own
 definitions: the band plan (:class:`~neuralbokeh.core.bands.BandPlan`: lattice, band position,
 the fill's reach) and the fill's ``ops.holes.JUMP_PX``.

@@ -43,7 +43,7 @@ from .baselines import check_baseline_inputs, aperture_rays
 _REFINE = 3  # narrowing passes of the min/max search
 
 
-def _refract(d: np.ndarray, n: np.ndarray, eta: float) -> np.ndarray:
+def refract(d: np.ndarray, n: np.ndarray, eta: float) -> np.ndarray:
     """Snell's law for unit direction ``d`` at unit normal ``n`` (facing against ``d``),
     ``eta = n_in / n_out``; rows of ``(M, 2)``."""
     cos_i = -(d * n).sum(axis=1, keepdims=True)
@@ -104,9 +104,9 @@ def singlet_zone_profile(rho: np.ndarray, index: float = 1.5168, bending: float 
         o = np.stack([heights, np.full_like(heights, -1.0)], axis=1)
         d = np.tile([0.0, 1.0], (len(heights), 1))
         p, n = _hit_sphere(o, d, 0.0, r1)
-        d = _refract(d, n, 1.0 / index)
+        d = refract(d, n, 1.0 / index)
         p, n = _hit_sphere(p, d, thickness, r2)
-        d = _refract(d, n, index)
+        d = refract(d, n, index)
         return p[:, 1] - p[:, 0] * d[:, 1] / d[:, 0]  # where the ray crosses the axis
 
     h = 0.5 / f_number

@@ -34,11 +34,9 @@ What it approximates for an all-in-focus image plus a depth map (:func:`render_d
   is what a lens sees through a blurred edge; ``fill="normalize"`` divides by the coverage
   (the foreground's own colours fill the hole, so it looks opaque); ``"none"`` leaves it dark.
 * ``coc_step`` 0.5, ``jump_px`` 4 and the two defaults above were chosen on Mitsuba renders of a
-  scene with continuous depth (``benchmarks/bench_continuous.py``, 8192 spp truth): against
-  "over" + normalising they gain 5.8 dB (blurred foreground over a sharp wall) and 7.1 dB
-  (the reverse) in linear PSNR; ``coc_step`` 1-2 px loses 11-13 dB on blurred highlights in
-  the reverse case and 0.25 px gains nothing; ``jump_px`` 1-8 are within 2 dB of each other
-  (1-2 px better on the blurred background, 4-8 px on the blurred foreground and in sRGB).
+  scene with continuous depth against the alternatives (``benchmarks/bench_continuous.py``; the
+  figures are in ``docs/benchmarks.md``): a coarser ``coc_step`` smears blurred highlights, a
+  finer one gains nothing.
 * Partial occlusion inside the lens (a point seen around the edge of a nearer object from
   part of the aperture) is modelled only through the layer order, as in all layered methods.
 * Cat-eye kernels vary continuously over the image; they are evaluated on a

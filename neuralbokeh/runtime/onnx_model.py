@@ -57,7 +57,7 @@ def make_session(path_or_bytes: str | bytes, threads: int | None = None, optimiz
 
     ``optimization``: onnxruntime's graph optimisation, ``"all"`` (its default), ``"basic"`` or
     ``"off"``. A lens graph's thousands of ``If`` branches make the load the cost:
-    ``benchmarks/bench_load.py`` measures each level's load and render time (README). onnxruntime's
+    ``benchmarks/bench_load.py`` measures each level's load and render time (``docs/benchmarks.md``). onnxruntime's
     memory pattern (one block planned for the whole graph) is off: with a tile and band ``If``
     per branch it reserved ~0.8 GB more at 1080p for no measurable speed.
 
