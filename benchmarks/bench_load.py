@@ -1,6 +1,6 @@
 """What loading a lens model costs before the first frame, per onnxruntime graph optimisation level.
 
-    python benchmarks/bench_load.py MODEL.onnx FRAME.npz     # e.g. bench_runtime.py's default.onnx, frame_full.npz
+    python benchmarks/bench_load.py MODEL.onnx FRAME.npz     # e.g. bench_runtime.py's default.onnx, frame_1920x1080_full.npz
 
 A render-farm task that renders one frame pays the load every time. For each level (``all`` is
 onnxruntime's default), and for a file saved already optimised (``optimized_model_filepath``)

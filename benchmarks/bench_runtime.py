@@ -2,6 +2,7 @@
 
     python benchmarks/bench_runtime.py                  # ~35 min on 2 cores (exports included)
     python benchmarks/bench_runtime.py --reuse          # keep the exports of an earlier run
+    python benchmarks/bench_runtime.py --model runs/any_res/checkpoint.pt [--size 3840 2160]
 
 The model: a lens network (``architecture = "lens"``) built for 1920x1080 with k_max = 41
 (coc_scale_px 41, N = 20 blocks), 240 px tiles with 24 px overlap, *initialised from the lens
@@ -22,6 +23,11 @@ threads (torch and onnxruntime), median of ``--repeats`` renders after a warm-up
 frame, the ratio against the CoC Gaussian scatter of the same run, peak RSS, and for the model
 rows the PSNR (normalised images, the training metric) against the exact-aperture scatter of
 the same frame, and its difference from the fp32 direct export's.
+
+``--model CKPT`` times a *trained* lens checkpoint instead (its default and rows exports for
+``--size`` plates, the frame's largest CoC in proportion to its width, the learned pupil scaled
+where that exceeds the trained range), on the same three frames, next to the prior's default
+export of them at 1080p.
 
 ``--trained CKPT`` (with ``--data``, the dataset it was trained on) adds what the default
 export costs a *trained* model: the checkpoint exported direct and default, the held-out PSNR of
@@ -47,10 +53,12 @@ ROOT = Path(__file__).resolve().parents[1]
 H, W, C_MAX, TILE, OVERLAP = 1080, 1920, 41.0, 240, 24
 
 
-def make_frame(seed: int) -> tuple[np.ndarray, np.ndarray, dict, np.ndarray]:
+def make_frame(seed: int, height: int = H, width: int = W, max_coc_px: float = 40.0,
+               ) -> tuple[np.ndarray, np.ndarray, dict, np.ndarray]:
     """``(aif (H, W, 3) linear, signed CoC (H, W) px, lens dict, truth (H, W, 3))`` of the
-    benchmark frame; the truth is the layered render (``scatter_layers``: every layer whole,
-    what foregrounds hide included), as ``data_tools.synth`` renders training data."""
+    benchmark frame (``height`` x ``width`` px, largest |CoC| ``max_coc_px``); the truth is the
+    layered render (``scatter_layers``: every layer whole, what foregrounds hide included), as
+    ``data_tools.synth`` renders training data."""
     sys.path.insert(0, str(ROOT))
     import torch
 
@@ -59,11 +67,12 @@ def make_frame(seed: int) -> tuple[np.ndarray, np.ndarray, dict, np.ndarray]:
     from neuralbokeh.core.optics import ThinLens
     from neuralbokeh.render import scatter_layers
 
+    H, W = height, width  # noqa: N806 (the frame's, not the module's)
     layers = make_layers(np.random.default_rng(seed), H, W, SceneParams())
     aif, depth = composite_sharp(layers)
     focus = float(np.quantile(depth[np.isfinite(depth)], 0.3))
     probe = ThinLens(50.0, 1.8, 36.0)
-    lens = ThinLens(50.0, 1.8 * float(np.abs(probe.coc_px(depth, focus, W, signed=True)).max()) / 40.0, 36.0)
+    lens = ThinLens(50.0, 1.8 * float(np.abs(probe.coc_px(depth, focus, W, signed=True)).max()) / max_coc_px, 36.0)
     colors = torch.from_numpy(np.stack([layer.color * layer.alpha[..., None] for layer in layers])).permute(0, 3, 1, 2)
     alphas = torch.from_numpy(np.stack([layer.alpha for layer in layers]))[:, None]
     truth = scatter_layers(colors, alphas, [lens.coc_px(layer.depth_m, focus, W, signed=True) for layer in layers],
@@ -83,8 +92,11 @@ def _peak_rss_mb() -> float:
 EXPORTS = {"default": (None, False), "direct": ("direct", False), "rows": ("rows", False), "default_fp16": (None, True)}
 
 
-def make_model(out: Path, reuse: bool, names: tuple[str, ...] = tuple(EXPORTS)) -> dict[str, Path]:
-    """The prior-initialised checkpoint and its exports ``names`` (keys of ``EXPORTS``)."""
+def make_model(out: Path, reuse: bool, names: tuple[str, ...] = tuple(EXPORTS), checkpoint: Path | None = None,
+               size: tuple[int, int] | None = None, max_coc_px: float | None = None, tag: str = "") -> dict[str, Path]:
+    """The prior-initialised 1080p checkpoint (or ``checkpoint``, exported for plates of ``size``
+    ``(H, W)`` up to ``max_coc_px``) and its exports ``names`` (keys of ``EXPORTS``), files
+    ``<tag><name>.onnx``."""
     import torch
 
     from neuralbokeh.checkpoint import save_checkpoint
@@ -99,19 +111,19 @@ def make_model(out: Path, reuse: bool, names: tuple[str, ...] = tuple(EXPORTS)) 
     aperture = ApertureModel(parse_aperture("polygon:7"))
     cfg = ModelConfig(blocks=20, tile=TILE, overlap=OVERLAP, architecture="lens", pupil_init="aperture")
     contract = Contract(H, W, Normalization(0.18), C_MAX, C_MAX, ThinLens(50.0, 1.8, 36.0), aperture.to_dict())
-    ckpt = out / "prior_1080p.pt"
-    if not (reuse and ckpt.exists()):
+    ckpt = checkpoint or out / "prior_1080p.pt"
+    if checkpoint is None and not (reuse and ckpt.exists()):
         torch.manual_seed(0)
         save_checkpoint(ckpt, {"model_config": cfg.to_dict(), "contract": contract.to_dict(),
                                "model_state": build_model(cfg, contract).state_dict(), "step": 0})
     paths = {"checkpoint": ckpt}
     for name in names:
         kernels, fp16 = EXPORTS[name]
-        path = out / f"{name}.onnx"
+        path = out / f"{tag}{name}.onnx"
         if not (reuse and path.exists()):
             t = time.perf_counter()
-            rep = export_checkpoint(ckpt, path, kernels=kernels, fp16=fp16, threads=2)
-            print(f"exported {name:<13} in {time.perf_counter() - t:5.0f} s: kernels {rep['metadata']['kernels']}, "
+            rep = export_checkpoint(ckpt, path, kernels=kernels, fp16=fp16, threads=2, size=size, max_coc_px=max_coc_px)
+            print(f"exported {tag}{name:<13} in {time.perf_counter() - t:5.0f} s: kernels {rep['metadata']['kernels']}, "
                   f"parity {max(rep['parity'].values()):.1e}", flush=True)
         paths[name] = path
     return paths
@@ -216,7 +228,7 @@ def _psnr(a: np.ndarray, b: np.ndarray) -> float:
 
     norm = Normalization(0.18)
     mse = float(np.mean(((norm.encode(a.astype(np.float64)) - norm.encode(b.astype(np.float64))) / 2.0) ** 2))
-    return 10.0 * np.log10(1.0 / mse)
+    return 10.0 * np.log10(1.0 / mse) if mse > 0 else float("inf")
 
 
 def main() -> None:
@@ -228,6 +240,9 @@ def main() -> None:
     p.add_argument("--seed", type=int, default=3, help="the procedural scene")
     p.add_argument("--trained", type=Path, help="a trained lens checkpoint: held-out PSNR of its direct and default exports")
     p.add_argument("--data", type=Path, help="the dataset --trained was trained on")
+    p.add_argument("--model", type=Path, help="time this trained lens checkpoint instead of the untrained prior (exports "
+                   "default and rows for --size plates; at 1080p next to the prior's default export)")
+    p.add_argument("--size", type=int, nargs=2, default=(W, H), metavar=("W", "H"), help="the frame with --model")
     p.add_argument("--worker", help=argparse.SUPPRESS)
     p.add_argument("--frame", type=Path, help=argparse.SUPPRESS)
     p.add_argument("--out", type=Path, help=argparse.SUPPRESS)
@@ -236,17 +251,14 @@ def main() -> None:
         worker(args)
         return
     sys.path.insert(0, str(ROOT))
+    args.out_dir.mkdir(parents=True, exist_ok=True)
     if args.trained:
         trained_loss(args.trained, args.data, args.out_dir, args.threads)
+    if args.model:
+        model_speed(args)
+        return
     paths = make_model(args.out_dir, args.reuse)
-    aif, coc, lens, truth = make_frame(args.seed)
-    frames = {}
-    for name, c in (("full", coc), ("third", coc / 3.0), ("half_in_focus", np.where(np.arange(W)[None, :] < W // 2, 0.0, coc))):
-        frames[name] = args.out_dir / f"frame_{name}.npz"
-        np.savez(frames[name], aif=aif, coc=c)
-    print(f"frame: 1920x1080 procedural scene (seed {args.seed}), f/{lens['f_number']:.2f}, |CoC| up to {np.abs(coc).max():.1f} px, "
-          f"{100 * np.mean(np.abs(coc) <= 1):.0f} % of pixels within 1 px; model k_max 41 (N = 20), {TILE} px tiles, "
-          f"initialised from the lens prior (7-blade aperture, untrained); median of {args.repeats}")
+    frames, truth = _frames(args, H, W, 40.0)
     rows = [("runtime, default export", f"onnx:{paths['default']}", "full", args.threads),
             ("runtime, default export, 1 thread", f"onnx:{paths['default']}", "full", 1),
             ("runtime, default export, fp16", f"onnx:{paths['default_fp16']}", "full", args.threads),
@@ -260,26 +272,10 @@ def main() -> None:
             ("runtime, direct, max CoC / 3", f"onnx:{paths['direct']}", "third", args.threads),
             ("runtime, rows, max CoC / 3", f"onnx:{paths['rows']}", "third", args.threads),
             ("runtime, rows, half in focus", f"onnx:{paths['rows']}", "half_in_focus", args.threads)]
-    results = {}
-    for label, spec, frame, threads in rows:
-        out = args.out_dir / f"out_{len(results)}.npy"
-        r = _row(spec, frames[frame], out, threads, args.repeats)
-        results[label] = {**r, "frame": frame, "threads": threads, "image": np.load(out)}
-        print(f"  ran {label}: {r['ms']:.0f} ms", flush=True)
-    gauss = results["CoC Gaussian scatter"]["ms"]
-    direct = results["runtime, direct-convolution export"]
-    base_psnr = _psnr(direct["image"], truth)
-    print("\nPSNR: against the layered render of the full frame (normalised images, the training metric); dPSNR: minus the "
-          "direct export's; vs direct: PSNR of the row against the direct export's output")
-    print(f"\n{'':<38} {'frame':<14} {'thr':>3} {'ms/frame':>9} {'x Gauss':>8} {'RSS MB':>7} {'PSNR':>7} {'dPSNR':>7} {'vs direct':>9}")
-    for label, r in results.items():
-        psnr = _psnr(r["image"], truth) if r["frame"] == "full" else None
-        vs_direct = _psnr(r["image"], direct["image"]) if psnr is not None and r is not direct else None
-        print(f"{label:<38} {r['frame']:<14} {r['threads']:>3} {r['ms']:>9.0f} {r['ms'] / gauss:>8.2f} {r['rss_mb']:>7.0f} "
-              + (f"{psnr:>7.2f} {psnr - base_psnr:>+7.3f} " if psnr is not None else f"{'':>7} {'':>7} ")
-              + (f"{vs_direct:>9.2f}" if vs_direct is not None else ""))
+    results = _run_rows(rows, frames, args)
+    _table(results, truth, "runtime, direct-convolution export")
     ms = {k: v["ms"] for k, v in results.items()}
-    default = ms["runtime, default export"]
+    gauss, default = ms["CoC Gaussian scatter"], ms["runtime, default export"]
     print(f"\ndefault export: {default / gauss:.2f}x the CoC Gaussian's time, {ms['runtime, direct-convolution export'] / default:.1f}x "
           f"faster than the direct export; 1 -> {args.threads} threads {ms['runtime, default export, 1 thread'] / default:.2f}x")
     print(f"max CoC / 3: default {default / ms['runtime, default, max CoC / 3']:.2f}x faster than the full frame "
@@ -289,6 +285,83 @@ def main() -> None:
     print(f"rows export (exact): {ms['runtime, direct-convolution export'] / rows_full:.1f}x faster than the direct export; "
           f"max CoC / 3 {rows_full / ms['runtime, rows, max CoC / 3']:.2f}x, half in focus "
           f"{rows_full / ms['runtime, rows, half in focus']:.2f}x faster than its full frame")
+
+
+def _frames(args: argparse.Namespace, height: int, width: int, max_coc_px: float) -> tuple[dict[str, Path], np.ndarray]:
+    """The frame (``full``) and its two variants (``third``: the CoC / 3; ``half_in_focus``: the
+    left half at CoC 0), saved for the workers; and the full frame's truth."""
+    aif, coc, lens, truth = make_frame(args.seed, height, width, max_coc_px)
+    frames = {}
+    half = np.where(np.arange(width)[None, :] < width // 2, 0.0, coc)
+    for name, c in (("full", coc), ("third", coc / 3.0), ("half_in_focus", half)):
+        frames[name] = args.out_dir / f"frame_{width}x{height}_{name}.npz"
+        np.savez(frames[name], aif=aif, coc=c)
+    print(f"frame: {width}x{height} procedural scene (seed {args.seed}), f/{lens['f_number']:.2f}, |CoC| up to "
+          f"{np.abs(coc).max():.1f} px, {100 * np.mean(np.abs(coc) <= 1):.0f} % of pixels within 1 px; median of {args.repeats}")
+    return frames, truth
+
+
+def _run_rows(rows: list[tuple[str, str, str, int]], frames: dict[str, Path], args: argparse.Namespace) -> dict[str, dict]:
+    results = {}
+    for label, spec, frame, threads in rows:
+        out = args.out_dir / f"out_{len(results)}.npy"
+        r = _row(spec, frames[frame], out, threads, args.repeats)
+        results[label] = {**r, "frame": frame, "threads": threads, "image": np.load(out)}
+        print(f"  ran {label}: {r['ms']:.0f} ms", flush=True)
+    return results
+
+
+def _table(results: dict[str, dict], truth: np.ndarray, reference: str) -> None:
+    gauss = results["CoC Gaussian scatter"]["ms"]
+    ref = results[reference]
+    base_psnr = _psnr(ref["image"], truth)
+    print(f"\nPSNR: against the layered render of the full frame (normalised images, the training metric); dPSNR: minus "
+          f"{reference!r}'s; vs ref: PSNR of the row against that row's output")
+    print(f"\n{'':<38} {'frame':<14} {'thr':>3} {'ms/frame':>9} {'x Gauss':>8} {'RSS MB':>7} {'PSNR':>7} {'dPSNR':>7} {'vs ref':>9}")
+    for label, r in results.items():
+        psnr = _psnr(r["image"], truth) if r["frame"] == "full" else None
+        vs_ref = _psnr(r["image"], ref["image"]) if psnr is not None and r is not ref else None
+        print(f"{label:<38} {r['frame']:<14} {r['threads']:>3} {r['ms']:>9.0f} {r['ms'] / gauss:>8.2f} {r['rss_mb']:>7.0f} "
+              + (f"{psnr:>7.2f} {psnr - base_psnr:>+7.3f} " if psnr is not None else f"{'':>7} {'':>7} ")
+              + (f"{vs_ref:>9.2f}" if vs_ref is not None else ""))
+
+
+def model_speed(args: argparse.Namespace) -> None:
+    """``--model``: a trained lens checkpoint exported for ``--size`` plates (default and rows
+    exports), timed on the frame and its two variants; at 1080p next to the untrained prior's
+    default export ("today's way") in the same run. The frame's largest CoC is 40 px at 1920 px
+    wide, in proportion at other widths (the same lens on the same sensor)."""
+    width, height = args.size
+    max_coc = 40.0 * width / W
+    frames, truth = _frames(args, height, width, max_coc)
+    from neuralbokeh.checkpoint import load_checkpoint
+
+    trained_max = float(load_checkpoint(args.model)["contract"]["max_coc_px"])
+    beyond = max_coc * 1.001 if max_coc > trained_max else None  # scaled pupil beyond the trained range
+    paths = make_model(args.out_dir, args.reuse, ("default", "rows"), checkpoint=args.model, size=(height, width),
+                       max_coc_px=beyond, tag=f"model_{width}x{height}_")
+    rows = [(f"model, {e} export{', ' + f if f != 'full' else ''}{', 1 thread' if t == 1 else ''}", f"onnx:{paths[e]}", f,
+             t or args.threads) for e, f, t in (("default", "full", 0), ("default", "full", 1), ("default", "third", 0),
+                                                ("default", "half_in_focus", 0), ("rows", "full", 0), ("rows", "third", 0),
+                                                ("rows", "half_in_focus", 0))]
+    rows += [("exact-aperture scatter (7-gon)", "scatter", "full", args.threads),
+             ("CoC Gaussian scatter", "gaussian", "full", args.threads)]
+    if (width, height) == (W, H):  # today's way: the untrained prior's default export of the same frames
+        prior = make_model(args.out_dir, args.reuse, ("default",))["default"]
+        rows += [(f"prior, default export{', ' + f if f != 'full' else ''}", f"onnx:{prior}", f, args.threads)
+                 for f in ("full", "third", "half_in_focus")]
+    results = _run_rows(rows, frames, args)
+    _table(results, truth, "model, rows export")
+    ms = {k: v["ms"] for k, v in results.items()}
+    for e in ("default", "rows"):
+        full = ms[f"model, {e} export"]
+        print(f"model, {e} export: {full:.0f} ms per frame, peak RSS {results[f'model, {e} export']['rss_mb'] / 1024:.2f} GB; "
+              f"max CoC / 3 {full / ms[f'model, {e} export, third']:.2f}x and half in focus "
+              f"{full / ms[f'model, {e} export, half_in_focus']:.2f}x faster than the full frame")
+    if "prior, default export" in ms:
+        print(f"against the prior's default export (today's way): full {ms['prior, default export'] / ms['model, default export']:.2f}x, "
+              f"max CoC / 3 {ms['prior, default export, third'] / ms['model, default export, third']:.2f}x, half in focus "
+              f"{ms['prior, default export, half_in_focus'] / ms['model, default export, half_in_focus']:.2f}x (> 1: the model is faster)")
 
 
 if __name__ == "__main__":
