@@ -5,6 +5,7 @@ import json
 
 import numpy as np
 import onnx
+import pytest
 import torch
 
 from neuralbokeh.checkpoint import load_model
@@ -12,7 +13,6 @@ from neuralbokeh.core.bands import BandPlan, active_bands, band_diameters, latti
 from neuralbokeh.export.exporter import plate_model
 from neuralbokeh.networks.lens import band_gates
 from neuralbokeh.runtime import OnnxBokeh
-from neuralbokeh.runtime.onnx_model import METADATA_KEY
 
 
 def test_a_plan_covers_the_frame_with_the_fewest_bands_of_the_lattice():
@@ -40,22 +40,21 @@ def test_numpy_and_torch_read_the_same_band_position():
 
 
 def test_the_file_carries_the_plate_plan_and_the_runtime_plans_with_it(busy_checkpoint, busy_onnx, tmp_path):
-    """The exported file stores the plate's own plan; the runtime reads it (files exported before
-    it was stored get the same numbers from their contract), and its band flags cover every band
+    """The exported file stores the plate's own plan; the runtime reads it (a lens file without
+    one is refused: no second copy of the planning rules), and its band flags cover every band
     the network's gates use, by the same position function."""
     model, _ = load_model(busy_checkpoint)
     plate = plate_model(model)
     want = plate.plan(plate.contract.max_coc_px)
     m = OnnxBokeh(busy_onnx, threads=1)
     assert m.plan == want and json.loads(onnx.load(busy_onnx).metadata_props[0].value)["band_plan"] == want.to_dict()
-    legacy = onnx.load(busy_onnx)
-    meta = json.loads(legacy.metadata_props[0].value)
+    planless = onnx.load(busy_onnx)
+    meta = json.loads(planless.metadata_props[0].value)
     del meta["band_plan"]
-    legacy.metadata_props[0].value = json.dumps(meta)
-    onnx.save(legacy, tmp_path / "legacy.onnx")
-    old = OnnxBokeh(tmp_path / "legacy.onnx", threads=1)
-    assert legacy.metadata_props[0].key == METADATA_KEY and old.plan.blocks == want.blocks
-    assert old.plan.fill_radius_px == want.fill_radius_px and abs(old.plan.step_px - want.step_px) < 1e-9
+    planless.metadata_props[0].value = json.dumps(meta)
+    onnx.save(planless, tmp_path / "planless.onnx")
+    with pytest.raises(ValueError, match="planless.onnx: a lens model without its band plan: export the checkpoint again"):
+        OnnxBokeh(tmp_path / "planless.onnx", threads=1)
     g = np.random.default_rng(3)
     coc = g.uniform(-1.0, 1.0, (1, m.height, m.width)) * want.c_plan_px / 3  # a third of the range,
     coc[..., : m.width // 2] = 0.0  # and the left half in focus

@@ -256,30 +256,18 @@ def test_rows_export_is_the_direct_export(busy_checkpoint, tmp_path):
     assert max(half["parity"].values()) <= 2e-2
 
 
-def test_old_checkpoints_are_refused_and_old_onnx_files_still_run(busy_checkpoint, busy_onnx, tmp_path):
-    """A checkpoint of a format before networks of any size is refused in one line (no user has
-    one); an ONNX file of format 1 (loose keys) still loads to the same contract and outputs."""
+def test_files_of_earlier_formats_are_refused_in_one_line(busy_checkpoint, busy_onnx, tmp_path):
+    """A checkpoint of a format before networks of any size, and an ONNX file of format 1 (the
+    contract as loose keys), are refused with what to do (no user has either)."""
     from neuralbokeh.runtime import OnnxBokeh
 
     model, ckpt = load_model(busy_checkpoint)
     torch.save({**ckpt, "format_version": 2}, tmp_path / "v2.pt")
     with pytest.raises(ValueError, match="format_version 2 is not supported.*retrain"):
         load_model(tmp_path / "v2.pt")
-    c = ckpt["contract"]
-    legacy_cfg = {**ckpt["model_config"], "image_height": c["image_size"]["height"], "image_width": c["image_size"]["width"],
-                  "coc_scale_px": c["coc_scale_px"], "norm_scale": c["normalization"]["scale"],
-                  "norm_offset": c["normalization"]["offset"], "init_aperture": None}
-    legacy_cfg["kernels"] = legacy_cfg.pop("kernel_sizes")
-    loose = {k: c[k] for k in ("normalization", "coc_scale_px", "max_coc_px", "lens", "aperture")}
-
     proto = onnx.load(busy_onnx)
     meta = json.loads(proto.metadata_props[0].value)
-    meta = {k: v for k, v in meta.items() if k != "contract"} | {"format_version": 1, "model_config": legacy_cfg, **loose,
-                                                                   "image_size": c["image_size"]}
-    proto.metadata_props[0].value = json.dumps(meta)
+    proto.metadata_props[0].value = json.dumps({**meta, "format_version": 1})
     onnx.save(proto, tmp_path / "v1.onnx")
-    m_old, m_new = OnnxBokeh(tmp_path / "v1.onnx", threads=1), OnnxBokeh(busy_onnx, threads=1)
-    assert m_old.contract == m_new.contract
-    aif = np.full((m_new.height, m_new.width, 3), 0.3, np.float32)
-    coc = np.linspace(-1, 1, m_new.height * m_new.width).reshape(m_new.height, m_new.width) * m_new.contract.max_coc_px
-    np.testing.assert_array_equal(m_old.render_coc(aif, coc), m_new.render_coc(aif, coc))
+    with pytest.raises(ValueError, match=r"v1.onnx: unsupported model format 'neuralbokeh-onnx' v1 \(this neuralbokeh reads v2\)"):
+        OnnxBokeh(tmp_path / "v1.onnx", threads=1)

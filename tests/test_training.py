@@ -55,6 +55,14 @@ threads = 1
 # --- configs -------------------------------------------------------------------------------------
 
 
+def test_a_stored_model_config_reads_back_with_the_dataclass_defaults():
+    cfg = ModelConfig(blocks=3, tile=16, overlap=4, pupil_init="disk")
+    assert ModelConfig.from_dict(cfg.to_dict()) == cfg
+    assert ModelConfig.from_dict({"blocks": 3}) == ModelConfig(blocks=3)  # left out: the default, never another
+    with pytest.raises(ValueError, match=r"unknown model config keys \['kernels'\]"):
+        ModelConfig.from_dict({"blocks": 3, "kernels": "growing"})
+
+
 def test_shipped_configs_load_and_ablations_differ_as_named():
     base = load_config(ROOT / "configs" / "quickstart.toml")
     assert base.model.blocks == "auto" and base.train.loss == "image"

@@ -125,11 +125,3 @@ class Contract:
         return cls(int(d["image_size"]["height"]), int(d["image_size"]["width"]), Normalization.from_dict(d["normalization"]),
                    float(d["coc_scale_px"]), float(d["max_coc_px"]),
                    ThinLens.from_dict(d["lens"]) if d.get("lens") else None, d.get("aperture"))
-
-    @classmethod
-    def from_legacy(cls, d: Mapping[str, Any], model_config: Mapping[str, Any]) -> Contract:
-        """The contract of a checkpoint or ONNX metadata written before contracts existed:
-        loose ``normalization``, ``coc_scale_px``, ``max_coc_px``, ``lens``, ``aperture`` keys,
-        the image size from the stored model config."""
-        return cls.from_dict({"version": 1, "image_size": {"height": model_config["image_height"], "width": model_config["image_width"]},
-                              **{k: d.get(k) for k in ("normalization", "coc_scale_px", "max_coc_px", "lens", "aperture")}})

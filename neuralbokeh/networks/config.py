@@ -22,8 +22,6 @@ TILINGS = ("overlap", "none", "no_overlap")
 HEADS = ("identity", "paper")
 # the identity head scales tanh(d) by this: 1 + rgb * tanh(d) stays > 0 for inputs of exactly +-1
 TANH_LIMIT = 1.0 - 1e-6
-# keys of model configs written before the data contract: they now live in the contract
-_LEGACY_DATA_KEYS = ("image_height", "image_width", "coc_scale_px", "norm_scale", "norm_offset", "init_aperture")
 
 
 @dataclass(frozen=True)
@@ -55,8 +53,7 @@ class ModelConfig:
             to "in front of / behind" the receiving pixel (lens), > 0.
         fill: what the lens architecture puts where its coverage falls short (what a blurred
             foreground uncovers): ``"background"`` (the visible background around the occluder,
-            as the reference renderer's default) or ``"normalize"`` (divide by the coverage;
-            checkpoints written before this option).
+            as the reference renderer's default) or ``"normalize"`` (divide by the coverage).
         (``features``, ``head`` and the FFT thresholds: paper only; ``pupil_*``,
         ``field_grid``, ``occlusion_margin_px``, ``fill``: lens only; the rest: both.)
     """
@@ -123,18 +120,9 @@ class ModelConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> ModelConfig:
-        """Read :meth:`to_dict`'s output, and model configs of older checkpoints (their data
-        fields, now in the contract, are dropped; ``kernels`` is ``kernel_sizes``; no
-        ``architecture`` means the paper's network; no ``fill`` means ``"normalize"``)."""
-        d = {k: v for k, v in d.items() if k not in _LEGACY_DATA_KEYS}
-        if "kernels" in d:
-            d["kernel_sizes"] = d.pop("kernels")
+        """Read :meth:`to_dict`'s output; a key left out takes the dataclass's default."""
         known = {f.name for f in fields(cls)}
         unknown = set(d) - known
         if unknown:
             raise ValueError(f"unknown model config keys {sorted(unknown)}; expected {sorted(known)}")
-        if "architecture" not in d:  # checkpoints written before the switch hold the paper's network
-            d = {**d, "architecture": "paper"}
-        if "fill" not in d:  # written before the background fill: they were trained normalising
-            d = {**d, "fill": "normalize"}
         return cls(**d)

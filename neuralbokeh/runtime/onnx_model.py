@@ -27,14 +27,13 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import onnxruntime as ort
 
-from ..core.bands import BandPlan, active_bands, lattice_step
+from ..core.bands import BandPlan, active_bands
 from ..core.checks import check_at_least, check_finite, format_location
 from ..core.contract import Contract
 from ..core.optics import SensorWindow
@@ -44,7 +43,7 @@ log = logging.getLogger(__name__)
 
 METADATA_KEY = "neuralbokeh"  # the ONNX metadata_props entry holding the JSON below
 FORMAT = "neuralbokeh-onnx"
-FORMAT_VERSION = 2  # 2: "contract" and "model_config" (1: the contract as loose keys, read and upgraded)
+FORMAT_VERSION = 2  # 2: "contract", "model_config" and, for the lens network, "band_plan"
 
 
 # onnxruntime's graph optimisation levels by their names here
@@ -86,21 +85,24 @@ def make_session(path_or_bytes: str | bytes, threads: int | None = None, optimiz
 
 
 def read_metadata(session: ort.InferenceSession, source: str = "model") -> dict[str, Any]:
-    """The exporter's metadata of a session, with ``contract`` (a ``Contract.to_dict()``) and
-    ``model_config`` whatever the format version.
+    """The exporter's metadata of a session: ``contract`` (a ``Contract.to_dict()``),
+    ``model_config`` and, for the lens network, ``band_plan``.
 
     Raises:
-        ValueError: no neuralbokeh metadata, or an unknown format or version.
+        ValueError: no neuralbokeh metadata, an unknown format or version, or a lens model
+            without its band plan (files of earlier versions: export them again).
     """
     props = session.get_modelmeta().custom_metadata_map
     if METADATA_KEY not in props:
         raise ValueError(f"{source} has no {METADATA_KEY!r} metadata: not exported by neuralbokeh's export.py")
     meta: dict[str, Any] = json.loads(props[METADATA_KEY])
     version = meta.get("format_version")
-    if meta.get("format") != FORMAT or version not in (1, FORMAT_VERSION):
-        raise ValueError(f"{source}: unsupported model format {meta.get('format')!r} v{version}")
-    if version == 1:
-        meta["contract"] = Contract.from_legacy(meta, meta["model_config"]).to_dict()
+    if meta.get("format") != FORMAT or version != FORMAT_VERSION:
+        raise ValueError(f"{source}: unsupported model format {meta.get('format')!r} v{version} (this neuralbokeh reads "
+                         f"v{FORMAT_VERSION}): export the checkpoint again with this version's export.py")
+    if meta["model_config"].get("architecture") == "lens" and not meta.get("band_plan"):
+        raise ValueError(f"{source}: a lens model without its band plan: export the checkpoint again with this version's "
+                         "export.py")
     return meta
 
 
@@ -187,12 +189,8 @@ class OnnxBokeh:
                         dtype=bool)
 
     def _band_plan(self) -> BandPlan:
-        """The file's band plan (files exported before it was stored: their N bands over the
-        CoC scale, as the exporter of that version planned them)."""
-        if self.meta.get("band_plan"):
-            return BandPlan.from_dict(self.meta["band_plan"])
-        blocks, c_max = int(self.meta["model_config"]["blocks"]), float(self.contract.coc_scale_px)
-        return BandPlan(lattice_step(c_max, blocks), blocks, math.ceil(c_max / 2.0))
+        """The band plan the file was exported with (:func:`read_metadata` checks it is there)."""
+        return BandPlan.from_dict(self.meta["band_plan"])
 
     def active_bands(self, coc_px: np.ndarray) -> np.ndarray:
         """``(tiles, N, 2)`` bool (lens models): the bands and sides each tile's pixels use in
