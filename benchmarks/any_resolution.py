@@ -1,7 +1,7 @@
 """A lens, not a picture size: train on crops of large frames, score whole frames at three formats.
 
     python benchmarks/any_resolution.py [--size 1920 1080] [--scenes 16] [--minutes 30] [--crop 256]
-        [--f-number 13] [--data data/any_res] [--out runs/any_res]
+        [--f-number 13] [--data data/any_res] [--out runs/any_res] [--steps N] [--crop-margin auto|PX]
 
 Makes (once) ``--scenes`` synthetic scenes x 4 slices at ``--size`` (7-blade aperture, cat-eye
 0.6; f-number chosen so that the largest |CoC| is >= 40 px at 1080p), 25 % of the scenes held
@@ -95,6 +95,10 @@ def main() -> None:
     p.add_argument("--data", type=Path, default=ROOT / "data" / "any_res")
     p.add_argument("--out", type=Path, default=ROOT / "runs" / "any_res")
     p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--steps", type=int, help="train this many steps instead of --minutes of wall time (a control run "
+                   "that CPU contention cannot change)")
+    p.add_argument("--crop-margin", default="auto", help="data.crop_margin: px the loss stays from a crop's cut sides, "
+                   "or auto (the largest CoC radius); 0 for the loss on the whole crop")
     p.add_argument("--skip-training", action="store_true", help="score the checkpoint already in --out")
     p.add_argument("--cache", action="store_true",
                    help="keep the training scenes in memory (RSS grows with the data; the same crops as reading them)")
@@ -107,11 +111,12 @@ def main() -> None:
     print(f"data         {time.perf_counter() - t0:.0f} s (made once)")
     overrides = [f"data.roots=['{args.data}']", f"data.test_fraction={TEST_FRACTION}", f"data.split_seed={SPLIT_SEED}",
                  f"data.cache={'true' if args.cache else 'false'}", f"data.crop=[{args.crop}, {args.crop}]", "model.tile=128", "model.overlap=32",
-                 "train.steps=1000000", "train.lr_schedule='constant'", "train.eval_every=1000000",
+                 f"train.steps={args.steps or 1000000}", "train.lr_schedule='constant'", "train.eval_every=1000000",
+                 "data.crop_margin=" + ("'auto'" if args.crop_margin == "auto" else str(int(args.crop_margin))),
                  "train.checkpoint_every=100", "train.threads=2", f"train.out_dir='{args.out}'"]
     if not args.skip_training:
         cmd = [sys.executable, str(ROOT / "train.py"), str(ROOT / "configs" / "quickstart.toml"), *overrides,
-               "--time-limit", str(args.minutes), "--overwrite"]
+               *([] if args.steps else ["--time-limit", str(args.minutes)]), "--overwrite"]
         print("train        " + " ".join(cmd[1:]), flush=True)
         subprocess.run(cmd, check=True, cwd=ROOT)
     rss_gb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 2**20  # kB on Linux

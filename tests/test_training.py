@@ -333,3 +333,7 @@ def test_the_crop_loss_leaves_out_just_the_light_a_crop_cannot_see():
     assert loss_weights(torch.zeros(2, 4, dtype=torch.bool), (32, 40), margin) is None  # whole frames: all pixels
     with pytest.raises(ValueError, match=r"data.crop = \[8, 40\] px leaves no pixel for the loss"):
         crop_loss_margin([8, 40], c_max)
+    assert crop_loss_margin([32, 40], c_max, 0) == 0 and crop_loss_margin([32, 40], c_max, 7) == 7  # data.crop_margin
+    assert crop_loss_margin([], c_max) == 0  # whole scenes
+    with pytest.raises(ValueError, match="data.crop_margin must be an integer >= 0"):
+        build_config({"data": {"roots": ["data"], "crop_margin": -2}})

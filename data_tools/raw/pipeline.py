@@ -118,45 +118,17 @@ def process_stack(stack: Path, out: Path, args: argparse.Namespace, failures: li
     folder = out / stack.name
     if folder.exists():
         return None
-    files, developed = stack_files(stack)
-    metas = [read_metadata(f) for f in files]
-    focus = focus_distances(files, metas, args)
-    bad = [(f.name, d) for f, d in zip(files, focus) if not d > 0]
-    if bad:
-        raise ValueError(f"{stack}: focus distances must be > 0 m (inf allowed), got {bad}")
-    order = sorted(range(len(files)), key=lambda i: focus[i])  # near to far: neighbours are defocused alike
-    files, metas, focus = [files[i] for i in order], [metas[i] for i in order], [focus[i] for i in order]
+    files, metas, focus, developed = _stack_by_focus(stack, args)
     lens = lens_for(metas, args, stack)
     settings = DecodeSettings(args.demosaic, args.half_size)
-    ref = len(files) // 2
-    wb = None if developed else white_balance(files[ref], args.white_balance)
-    images, kept = [], []
+    wb = None if developed else white_balance(files[len(files) // 2], args.white_balance)
     # stages of one stack (decoding is most of it); shown on a terminal only (disable=None)
     bar = tqdm(total=len(files) + 2, desc=f"{stack.name}: decode", unit="step", leave=False, disable=None)
-    for f, fm in zip(files, focus):
-        bar.update()
-        try:
-            images.append(decode_developed(f, args.transfer) if developed else decode(f, wb, settings))
-            kept.append((f, fm))
-        except RawDecodeError as e:
-            failures.append(str(e))
-            log.error("%s", e)
-    if len(images) < 2:
-        raise ValueError(f"{stack}: fewer than 2 usable slices")
-    shapes = {im.shape for im in images}
-    if len(shapes) != 1:
-        raise ValueError(f"{stack}: slices have different sizes {sorted(shapes)}")
+    images, kept = _decode_all(stack, files, focus, lambda f: decode_developed(f, args.transfer) if developed
+                               else decode(f, wb, settings), failures, bar)
     decoded_h, decoded_w = images[0].shape[:2]
     ref = len(images) // 2  # the middle of the usable slices
-    gains = exposure_gains(images, ref) if developed else [1.0] * len(images)
-    if developed:
-        images = [im * np.float32(g) for im, g in zip(images, gains)]
-        log.info("%s: exposure gains against slice %d: %s", stack, ref, ", ".join(f"{g:.3f}" for g in gains))
-    y = images[ref].mean()
-    if y <= 0:
-        raise ValueError(f"{stack}: the reference slice {kept[ref][0].name} is black")
-    exposure = 0.18 / float(y)
-    images = [im * exposure for im in images]
+    images, gains, exposure = _equalise(stack, images, ref, developed, kept[ref][0])
     bar.set_description(f"{stack.name}: align")
     if args.no_align:
         aligned, info, crop = images, [], (slice(0, decoded_h), slice(0, decoded_w))
@@ -169,16 +141,7 @@ def process_stack(stack: Path, out: Path, args: argparse.Namespace, failures: li
     focus_kept = [fm for _, fm in kept]
     bar.update()
     bar.set_description(f"{stack.name}: fuse and write")
-    if args.depth:
-        depth_in = read_image(args.depth)[..., 0].astype(np.float64)
-        if depth_in.shape != (decoded_h, decoded_w):
-            raise ValueError(f"--depth {args.depth} is {depth_in.shape[1]}x{depth_in.shape[0]}, the decoded stack "
-                             f"{decoded_w}x{decoded_h}")
-        with np.errstate(divide="ignore"):
-            dio = _area_resize(1.0 / depth_in[crop], size)  # average in diopters: inf depth -> 0
-        fused = fuse_stack(aligned, focus_kept, args.window, known_diopters=dio)
-    else:
-        fused = fuse_stack(aligned, focus_kept, args.window)
+    fused = _fuse(aligned, focus_kept, args, crop, (decoded_h, decoded_w), size)
     # the camera's lens on its whole sensor (the same for every stack it shot); the scene is the
     # alignment crop's window on that sensor, so its CoC maps are in the output's own pixels
     scene_lens = ThinLens(lens.focal_length_mm, lens.f_number, lens.sensor_width_mm * decoded_w / max(decoded_h, decoded_w))
@@ -205,3 +168,67 @@ def process_stack(stack: Path, out: Path, args: argparse.Namespace, failures: li
     residual = max((a.residual_px for a in info), default=0.0)
     return {"stack": stack.name, "slices": len(aligned), "size": size, "residual_px": residual,
             "max_coc_px": float(max(np.abs(c).max() for c in cocs))}
+
+
+def _stack_by_focus(stack: Path, args: argparse.Namespace) -> tuple[list[Path], list[dict], list[float], bool]:
+    """The stack's files, their metadata and focus distances (m), sorted near to far
+    (neighbours are then defocused alike), and whether they are developed files."""
+    files, developed = stack_files(stack)
+    metas = [read_metadata(f) for f in files]
+    focus = focus_distances(files, metas, args)
+    bad = [(f.name, d) for f, d in zip(files, focus) if not d > 0]
+    if bad:
+        raise ValueError(f"{stack}: focus distances must be > 0 m (inf allowed), got {bad}")
+    order = sorted(range(len(files)), key=lambda i: focus[i])
+    return [files[i] for i in order], [metas[i] for i in order], [focus[i] for i in order], developed
+
+
+def _decode_all(stack: Path, files: list[Path], focus: list[float], decode_file: Any, failures: list[str],
+                bar: Any) -> tuple[list[np.ndarray], list[tuple[Path, float]]]:
+    """Every slice that decodes (``decode_file``), with its ``(file, focus_m)``; the others are
+    named in ``failures``. ``ValueError`` if fewer than 2 decode or their sizes differ."""
+    images, kept = [], []
+    for f, fm in zip(files, focus):
+        bar.update()
+        try:
+            images.append(decode_file(f))
+            kept.append((f, fm))
+        except RawDecodeError as e:
+            failures.append(str(e))
+            log.error("%s", e)
+    if len(images) < 2:
+        raise ValueError(f"{stack}: fewer than 2 usable slices")
+    shapes = {im.shape for im in images}
+    if len(shapes) != 1:
+        raise ValueError(f"{stack}: slices have different sizes {sorted(shapes)}")
+    return images, kept
+
+
+def _equalise(stack: Path, images: list[np.ndarray], ref: int, developed: bool,
+              ref_file: Path) -> tuple[list[np.ndarray], list[float], float]:
+    """Developed slices' exposures matched to slice ``ref``'s, then one factor for all that puts
+    the reference's mean at 0.18: ``(images, gains, exposure factor)``."""
+    gains = exposure_gains(images, ref) if developed else [1.0] * len(images)
+    if developed:
+        images = [im * np.float32(g) for im, g in zip(images, gains)]
+        log.info("%s: exposure gains against slice %d: %s", stack, ref, ", ".join(f"{g:.3f}" for g in gains))
+    y = images[ref].mean()
+    if y <= 0:
+        raise ValueError(f"{stack}: the reference slice {ref_file.name} is black")
+    exposure = 0.18 / float(y)
+    return [im * exposure for im in images], gains, exposure
+
+
+def _fuse(aligned: list[np.ndarray], focus_m: list[float], args: argparse.Namespace, crop: tuple[slice, slice],
+          decoded: tuple[int, int], size: tuple[int, int]) -> Any:
+    """The all-in-focus image and depth of the aligned slices (from focus, or from ``--depth``,
+    a map at the decoded size, cut to the alignment crop and resized to ``size`` in diopters)."""
+    if not args.depth:
+        return fuse_stack(aligned, focus_m, args.window)
+    depth_in = read_image(args.depth)[..., 0].astype(np.float64)
+    if depth_in.shape != decoded:
+        raise ValueError(f"--depth {args.depth} is {depth_in.shape[1]}x{depth_in.shape[0]}, the decoded stack "
+                         f"{decoded[1]}x{decoded[0]}")
+    with np.errstate(divide="ignore"):
+        dio = _area_resize(1.0 / depth_in[crop], size)  # average in diopters: inf depth -> 0
+    return fuse_stack(aligned, focus_m, args.window, known_diopters=dio)

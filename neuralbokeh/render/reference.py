@@ -59,58 +59,70 @@ def reference_scatter_layers(
     aperture = aperture or ApertureModel()
     colors = np.asarray(colors, dtype=np.float64)
     alphas = np.asarray(alphas, dtype=np.float64)
-    n_layers, _, h, w = colors.shape
-    n_a = 3 if aperture.chromatic else 1
-    n_u = n_a if aperture.spatially_varying else 0  # uniform-field response channels
     pad = max(aperture.kernel_radius_px(abs(c)) for c in coc_px)
     done: list[tuple[int, np.ndarray, np.ndarray]] = []  # (layer, colour, coverage) so far
-    for i in sorted(range(n_layers), key=lambda j: -coc_px[j]):  # far to near
-        c = coc_px[i]
-        rad = aperture.kernel_radius_px(abs(c))
-        # Canvas covers the padded image plus one kernel radius on every side.
-        m = pad + rad
-        canvas = np.zeros((3 + n_a + n_u, h + 2 * m, w + 2 * m))
-        for py in range(h + 2 * pad):
-            sy = _mirror(py, h, pad)
-            for px in range(w + 2 * pad):
-                sx = _mirror(px, w, pad)
-                a = alphas[i, 0, sy, sx]
-                if a == 0 and n_u == 0:
-                    continue
-                k = aperture.psf(c, field_position(sy, sx, h, w))
-                r = k.shape[-1] // 2
-                # colour, coverage, and a uniform unit field (every pixel scatters 1)
-                value = np.concatenate([colors[i, :, sy, sx], np.full(n_a, a), np.ones(n_u)])
-                kk = np.concatenate([k, k if n_a == 3 else k[1:2]] + ([k if n_u == 3 else k[1:2]] if n_u else []), 0)
-                y0, x0 = py + (m - pad) - r, px + (m - pad) - r
-                canvas[:, y0 : y0 + 2 * r + 1, x0 : x0 + 2 * r + 1] += kk * value[:, None, None]
-        layer = canvas[:, m : m + h, m : m + w]
-        if n_u:  # coverage always, colour on request, divided by the uniform-field response
-            u = np.maximum(layer[3 + n_a :], 1e-6)
-            color = layer[:3] / np.broadcast_to(u, (3, h, w)) if preserve_uniform else layer[:3]
-            layer = np.concatenate([color, layer[3 : 3 + n_a] / u])
-        cc, aa = layer[:3], np.clip(layer[3:], 0.0, 1.0)
-        done.append((i, cc, aa))
-        hidden = [j for j, (k, _, _) in enumerate(done[:-1]) if surface_px <= 0 or coc_px[k] > c + surface_px]
-        if surface_px <= 0:
-            keep = 1.0 - aa
-        else:  # only the light of the hidden layers that does not fit beside this surface's
-            behind = sum((done[j][2] for j in hidden), np.zeros_like(aa))
-            beside = sum((d[2] for j, d in enumerate(done) if j not in hidden), np.zeros_like(aa))
-            keep = np.ones_like(aa)
-            full = beside + behind > 1.0
-            keep[full] = np.minimum(np.maximum(1.0 - beside[full], 0.0) / np.maximum(behind[full], 1e-6), 1.0)
-        for j in hidden:
-            k, jc, ja = done[j]
-            done[j] = (k, keep * jc, keep * ja)
+    for i in sorted(range(len(colors)), key=lambda j: -coc_px[j]):  # far to near
+        done.append((i, *_scatter_layer(colors[i], alphas[i, 0], coc_px[i], aperture, pad, preserve_uniform)))
+        _occlude(done, coc_px, surface_px)
     out_c = sum(d[1] for d in done)
     out_a = sum(d[2] for d in done)
     if background is not None:
         return out_c / np.maximum(out_a, 1.0) + np.maximum(1.0 - out_a, 0.0) * background
     if fill_holes:
-        cover = np.broadcast_to(out_a, (3, h, w))
+        cover = np.broadcast_to(out_a, out_c.shape)
         out_c = np.where(cover > 1e-6, out_c / np.maximum(cover, 1e-6), out_c)
     return out_c
+
+
+def _scatter_layer(color: np.ndarray, alpha: np.ndarray, c: float, aperture: ApertureModel, pad: int,
+                   preserve_uniform: bool) -> tuple[np.ndarray, np.ndarray]:
+    """One layer (``color`` ``(3, H, W)``, ``alpha`` ``(H, W)``) scattered pixel by pixel with the
+    PSF at CoC ``c`` px and each pixel's field position, the image mirrored ``pad`` px beyond its
+    edges: ``(colour (3, H, W), coverage (1 or 3, H, W))``."""
+    h, w = alpha.shape
+    n_a = 3 if aperture.chromatic else 1
+    n_u = n_a if aperture.spatially_varying else 0  # uniform-field response channels
+    rad = aperture.kernel_radius_px(abs(c))
+    m = pad + rad  # the canvas covers the padded image plus one kernel radius on every side
+    canvas = np.zeros((3 + n_a + n_u, h + 2 * m, w + 2 * m))
+    for py in range(h + 2 * pad):
+        sy = _mirror(py, h, pad)
+        for px in range(w + 2 * pad):
+            sx = _mirror(px, w, pad)
+            a = alpha[sy, sx]
+            if a == 0 and n_u == 0:
+                continue
+            k = aperture.psf(c, field_position(sy, sx, h, w))
+            r = k.shape[-1] // 2
+            # colour, coverage, and a uniform unit field (every pixel scatters 1)
+            value = np.concatenate([color[:, sy, sx], np.full(n_a, a), np.ones(n_u)])
+            kk = np.concatenate([k, k if n_a == 3 else k[1:2]] + ([k if n_u == 3 else k[1:2]] if n_u else []), 0)
+            y0, x0 = py + (m - pad) - r, px + (m - pad) - r
+            canvas[:, y0 : y0 + 2 * r + 1, x0 : x0 + 2 * r + 1] += kk * value[:, None, None]
+    layer = canvas[:, m : m + h, m : m + w]
+    if n_u:  # coverage always, colour on request, divided by the uniform-field response
+        u = np.maximum(layer[3 + n_a :], 1e-6)
+        color = layer[:3] / np.broadcast_to(u, (3, h, w)) if preserve_uniform else layer[:3]
+        layer = np.concatenate([color, layer[3 : 3 + n_a] / u])
+    return layer[:3], np.clip(layer[3:], 0.0, 1.0)
+
+
+def _occlude(done: list[tuple[int, np.ndarray, np.ndarray]], coc_px: list[float], surface_px: float) -> None:
+    """The newest (nearest) layer of ``done`` hides the layers it is in front of, in place:
+    "over" (``surface_px`` <= 0) or only their light that does not fit beside its surface."""
+    c, aa = coc_px[done[-1][0]], done[-1][2]
+    hidden = [j for j, (k, _, _) in enumerate(done[:-1]) if surface_px <= 0 or coc_px[k] > c + surface_px]
+    if surface_px <= 0:
+        keep = 1.0 - aa
+    else:  # only the light of the hidden layers that does not fit beside this surface's
+        behind = sum((done[j][2] for j in hidden), np.zeros_like(aa))
+        beside = sum((d[2] for j, d in enumerate(done) if j not in hidden), np.zeros_like(aa))
+        keep = np.ones_like(aa)
+        full = beside + behind > 1.0
+        keep[full] = np.minimum(np.maximum(1.0 - beside[full], 0.0) / np.maximum(behind[full], 1e-6), 1.0)
+    for j in hidden:
+        k, jc, ja = done[j]
+        done[j] = (k, keep * jc, keep * ja)
 
 
 def reference_scatter_defocus(

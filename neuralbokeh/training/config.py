@@ -33,6 +33,10 @@ class DataConfig:
             of any sizes, mixed, each at least this big; every crop carries its window on the
             sensor); ``[]``: whole scenes, which must then share one size. Held-out evaluation
             always runs on whole frames. Lens network only.
+        crop_margin: px the loss stays away from each side where a crop cuts through its
+            frame (the target there holds light from beyond the crop that the crop's input
+            lacks), >= 0, or ``"auto"``: the data's largest CoC radius. 0 takes the loss on the
+            whole crop (an ablation).
     """
 
     roots: list[str] = field(default_factory=list)
@@ -41,6 +45,7 @@ class DataConfig:
     normalization_scale: float = 0.18
     cache: bool = True
     crop: list[int] = field(default_factory=list)
+    crop_margin: int | str = "auto"
 
 
 @dataclass
@@ -113,6 +118,9 @@ class TrainConfig:
             raise ValueError(f"train.field_lr_scale must be in (0, 1], got {t.field_lr_scale}")
         if d.crop and (len(d.crop) != 2 or any(isinstance(v, bool) or not isinstance(v, int) or v < 1 for v in d.crop)):
             raise ValueError(f"data.crop must be [height, width] in px (integers >= 1) or [] for whole scenes, got {d.crop!r}")
+        if d.crop_margin != "auto" and (isinstance(d.crop_margin, bool) or not isinstance(d.crop_margin, int)
+                                        or d.crop_margin < 0):
+            raise ValueError(f"data.crop_margin must be an integer >= 0 (px) or \"auto\", got {d.crop_margin!r}")
         if d.crop and self.model.architecture != "lens":
             raise ValueError(f"data.crop needs the lens network (model.architecture = 'lens'): the "
                              f"{self.model.architecture!r} network is built for one image size")

@@ -79,15 +79,16 @@ def compute_loss(model: torch.nn.Module, x: torch.Tensor, y: torch.Tensor, kind:
     return ((pred - y).square() * weights).sum() / (weights.sum() * y.shape[1]).clamp_min(1.0)
 
 
-def crop_loss_margin(crop: list[int] | None, max_coc_px: float) -> int:
-    """How far (px) the loss stays from a side where a training crop cuts its frame: the largest
-    CoC radius of the data (0 without crops). ``ValueError`` if that leaves a crop no pixel."""
+def crop_loss_margin(crop: list[int] | None, max_coc_px: float, margin: int | str = "auto") -> int:
+    """How far (px) the loss stays from a side where a training crop cuts its frame: ``margin``,
+    ``"auto"`` being the largest CoC radius of the data (0 without crops). ``ValueError`` if that
+    leaves a crop no pixel."""
     if not crop:
         return 0
-    margin = math.ceil(max_coc_px / 2.0)
+    margin = math.ceil(max_coc_px / 2.0) if margin == "auto" else int(margin)
     if min(crop) <= 2 * margin:
         raise ValueError(f"data.crop = {list(crop)} px leaves no pixel for the loss: the loss stays "
-                         f"{margin} px (the largest CoC radius) from each side where a crop cuts its frame; "
+                         f"{margin} px (data.crop_margin) from each side where a crop cuts its frame; "
                          f"use crops larger than {2 * margin} px")
     return margin
 
@@ -345,7 +346,7 @@ def _train(
     if steps_per_epoch < 1:
         raise ValueError(f"{len(train_ds)} training samples are too few for batch_size {t.batch_size}")
     samples = Samples(train_ds, cfg.data.cache, cfg.data.crop)
-    margin_px = crop_loss_margin(cfg.data.crop, train_ds.max_coc_px)
+    margin_px = crop_loss_margin(cfg.data.crop, train_ds.max_coc_px, cfg.data.crop_margin)
     test_samples = Samples(test_ds, cfg.data.cache) if test_ds else None
 
     lead = proc.rank == 0
