@@ -278,10 +278,10 @@ def test_what_a_blurred_foreground_uncovers_is_the_background_not_the_foreground
     assert err["background"] < 0.6 * err["normalize"], err  # measured: 0.39 against 0.85
 
 
-def test_checkpoints_without_a_fill_keep_normalising():
+def test_the_fill_defaults_to_the_background_and_refuses_unknown_fills():
     d = ModelConfig(blocks=2).to_dict()
     assert d["fill"] == "background"
     del d["fill"]
-    assert ModelConfig.from_dict(d).fill == "normalize"
+    assert ModelConfig.from_dict(d).fill == "background"  # left out: the dataclass's default
     with pytest.raises(ValueError, match="fill must be one of"):
         ModelConfig(blocks=2, fill="inpaint")

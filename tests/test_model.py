@@ -107,7 +107,7 @@ def test_config_validation():
     assert ModelConfig.from_dict(cfg.to_dict()) == cfg
     with pytest.raises(ValueError, match="resolved"):
         _paper(64, 64)  # blocks = "auto" must be resolved from the data first
-    # a model config of a checkpoint written before the data contract: data fields dropped, names upgraded
-    old = {"image_height": 64, "image_width": 64, "coc_scale_px": 5.0, "norm_scale": 0.18, "norm_offset": 0.0018,
-           "init_aperture": None, "blocks": 2, "kernels": "fixed3", "architecture": "paper"}
-    assert ModelConfig.from_dict(old) == ModelConfig(blocks=2, kernel_sizes="fixed3", architecture="paper", fill="normalize")
+    # a model config of a checkpoint written before the data contract is refused, not upgraded
+    old = {"image_height": 64, "image_width": 64, "blocks": 2, "kernels": "fixed3", "architecture": "paper"}
+    with pytest.raises(ValueError, match=r"unknown model config keys \['image_height', 'image_width', 'kernels'\]"):
+        ModelConfig.from_dict(old)
