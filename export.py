@@ -44,6 +44,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--max-coc", type=float, metavar="PX",
                    help="lens network: the largest |CoC| the file renders, px (default: the trained maximum; beyond it the "
                         "learned pupil is scaled)")
+    p.add_argument("--tile", type=int, metavar="PX",
+                   help="lens network: tile cores of PX px (default: the trained size; larger runs faster, and samples the "
+                        "field-dependent pupil once per tile, so more coarsely)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     p.add_argument("-v", "--verbose", action="store_true", help="info logging, and tracebacks with errors")
     args = p.parse_args(argv)
@@ -55,7 +58,7 @@ def main(argv: list[str] | None = None) -> int:
         report = export_checkpoint(args.checkpoint, args.out, args.opset, args.fp16, args.kernels, args.tolerance, args.threads,
                                    size=(args.size[1], args.size[0]) if args.size else None,
                                    window=SensorWindow(*args.sensor_window) if args.sensor_window else None,
-                                   max_coc_px=args.max_coc, progress=True)
+                                   max_coc_px=args.max_coc, tile_px=args.tile, progress=True)
     except (FileNotFoundError, FileExistsError, PermissionError, ValueError) as e:
         raise SystemExit(f"error: {e}")
     meta = report["metadata"]

@@ -21,7 +21,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("overrides", nargs="*", help="section.key=value, e.g. train.steps=50")
     p.add_argument("--resume", help="checkpoint to continue from (written by this tool with the same config)")
     p.add_argument("--stop-at", type=int, help="stop with a checkpoint after this step (continue with --resume)")
-    p.add_argument("--time-limit", type=float, help="stop with a final evaluation and checkpoint after this many minutes")
+    p.add_argument("--time-limit", type=float,
+                   help="stop with a final evaluation and checkpoint after this many minutes")
     p.add_argument("--overwrite", action="store_true", help="start afresh in a train.out_dir that already holds a run")
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging, and tracebacks with errors")
     args = p.parse_intermixed_args(argv)  # overrides may follow options

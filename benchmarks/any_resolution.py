@@ -38,10 +38,10 @@ import torch.nn.functional as F
 
 from data_tools.synth import main as synth
 from neuralbokeh.checkpoint import load_model
+from neuralbokeh.core.apertures import ApertureModel
 from neuralbokeh.core.normalization import Normalization
 from neuralbokeh.core.optics import SensorWindow, ThinLens
 from neuralbokeh.data.dataset import FocalStackDataset, load_scene, write_scene
-from neuralbokeh.core.apertures import ApertureModel
 from neuralbokeh.training.loop import Samples, held_out_baselines, held_out_metrics
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -110,7 +110,8 @@ def main() -> None:
            "--workers", str(args.workers)])
     print(f"data         {time.perf_counter() - t0:.0f} s (made once)")
     overrides = [f"data.roots=['{args.data}']", f"data.test_fraction={TEST_FRACTION}", f"data.split_seed={SPLIT_SEED}",
-                 f"data.cache={'true' if args.cache else 'false'}", f"data.crop=[{args.crop}, {args.crop}]", "model.tile=128", "model.overlap=32",
+                 f"data.cache={'true' if args.cache else 'false'}", f"data.crop=[{args.crop}, {args.crop}]",
+                 "model.tile=128", "model.overlap=32",
                  f"train.steps={args.steps or 1000000}", "train.lr_schedule='constant'", "train.eval_every=1000000",
                  "data.crop_margin=" + ("'auto'" if args.crop_margin == "auto" else str(int(args.crop_margin))),
                  "train.checkpoint_every=100", "train.threads=2", f"train.out_dir='{args.out}'"]

@@ -49,8 +49,8 @@ from data_tools.mitsuba.render import mitsuba_defocus, render_aif, render_depth
 from data_tools.mitsuba.scenes import OCCLUSION_FG_FOCUS_M, OCCLUSION_WALL_M, axis_camera, occlusion_scene
 from data_tools.mitsuba.variant import activate
 from neuralbokeh.core.apertures import ApertureModel, Gaussian
-from neuralbokeh.evaluation.metrics import image_metrics
 from neuralbokeh.core.optics import ThinLens
+from neuralbokeh.evaluation.metrics import image_metrics
 from neuralbokeh.render import scatter_defocus
 from neuralbokeh.render.baselines import gather_defocus, gaussian_defocus
 

@@ -29,8 +29,8 @@ from data_tools.procedural import SceneParams, composite_sharp, make_layers
 from data_tools.raw import fuse
 from data_tools.raw.developed import DEVELOPED_EXTENSIONS, decode_developed
 from neuralbokeh.core.apertures import ApertureModel
-from neuralbokeh.evaluation.metrics import image_metrics
 from neuralbokeh.core.optics import ThinLens, focus_sweep_m
+from neuralbokeh.evaluation.metrics import image_metrics
 from neuralbokeh.render import scatter_layers
 
 

@@ -24,8 +24,8 @@ from data_tools.mitsuba.render import mitsuba_defocus, render_aif, render_depth
 from data_tools.mitsuba.scenes import MitsubaSceneParams, axis_camera, procedural_scene
 from data_tools.mitsuba.variant import activate
 from neuralbokeh.core.apertures import ApertureModel, Polygon
-from neuralbokeh.evaluation.metrics import image_metrics
 from neuralbokeh.core.optics import ThinLens
+from neuralbokeh.evaluation.metrics import image_metrics
 from neuralbokeh.render import render_defocus as scatter_render
 
 

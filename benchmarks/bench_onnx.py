@@ -27,11 +27,11 @@ from pathlib import Path
 
 import numpy as np
 
+from neuralbokeh.checkpoint import load_checkpoint
 from neuralbokeh.data.dataset import FocalStackDataset
 from neuralbokeh.export.exporter import export_checkpoint
 from neuralbokeh.export.lowrank import DEFAULT_KERNELS
 from neuralbokeh.runtime.onnx_model import OnnxBokeh
-from neuralbokeh.checkpoint import load_checkpoint
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -55,8 +55,10 @@ def make_checkpoint(data: Path, out: Path, minutes: float) -> Path:
     subprocess.run([sys.executable, "-m", "data_tools.synth", "--out", str(data), "--scenes", "24", "--size", "192", "192",
                     "--slices", "4", "--aperture", "polygon:7", "--cat-eye", "0.6", "--f-number", "1.4", "--seed", "41",
                     "--workers", "2"], check=True, cwd=ROOT)
-    subprocess.run([sys.executable, "train.py", "configs/quickstart.toml", "--overwrite", f"data.roots=['{data}']", "data.test_fraction=0.2",
-                    "model.tile=96", "model.overlap=24", "train.steps=100000", "train.lr=1e-3", "model.architecture='paper'", "train.lr_schedule='constant'",
+    subprocess.run([sys.executable, "train.py", "configs/quickstart.toml", "--overwrite", f"data.roots=['{data}']",
+                    "data.test_fraction=0.2",
+                    "model.tile=96", "model.overlap=24", "train.steps=100000", "train.lr=1e-3", "model.architecture='paper'",
+                    "train.lr_schedule='constant'",
                     "train.eval_every=100000", "train.checkpoint_every=50", f"train.out_dir='{out}'",
                     "--time-limit", str(minutes)], check=True, cwd=ROOT)
     return out / "checkpoint.pt"

@@ -38,8 +38,8 @@ def worker(stack: Path, out: Path) -> None:
 
 def depth_error(stack: Path, out: Path) -> float:
     """Median |1/depth - 1/true depth| (diopters) over the output scene (cropped to its window)."""
-    from neuralbokeh.data.dataset import load_scene
     from neuralbokeh.core.io import read_image
+    from neuralbokeh.data.dataset import load_scene
 
     scene = load_scene(next(p for p in out.iterdir() if p.is_dir()))
     (r0, r1), (c0, c1) = scene["meta"]["generator"]["crop"]["rows"], scene["meta"]["generator"]["crop"]["cols"]

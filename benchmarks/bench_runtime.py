@@ -2,7 +2,7 @@
 
     python benchmarks/bench_runtime.py                  # ~35 min on 2 cores (exports included)
     python benchmarks/bench_runtime.py --reuse          # keep the exports of an earlier run
-    python benchmarks/bench_runtime.py --model runs/any_res/checkpoint.pt [--size 3840 2160]
+    python benchmarks/bench_runtime.py --model runs/any_res/checkpoint.pt [--size 3840 2160] [--tiles 256 384]
 
 The model: a lens network (``architecture = "lens"``) built for 1920x1080 with k_max = 41
 (coc_scale_px 41, N = 20 blocks), 240 px tiles with 24 px overlap, *initialised from the lens
@@ -27,7 +27,8 @@ the same frame, and its difference from the fp32 direct export's.
 ``--model CKPT`` times a *trained* lens checkpoint instead (its default and rows exports for
 ``--size`` plates, the frame's largest CoC in proportion to its width, the learned pupil scaled
 where that exceeds the trained range), on the same three frames, next to the prior's default
-export of them at 1080p.
+export of them at 1080p; ``--tiles PX ...`` adds its default export with tile cores of each
+PX px (``export.py --tile``).
 
 ``--trained CKPT`` (with ``--data``, the dataset it was trained on) adds what the default
 export costs a *trained* model: the checkpoint exported direct and default, the held-out PSNR of
@@ -93,10 +94,11 @@ EXPORTS = {"default": (None, False), "direct": ("direct", False), "rows": ("rows
 
 
 def make_model(out: Path, reuse: bool, names: tuple[str, ...] = tuple(EXPORTS), checkpoint: Path | None = None,
-               size: tuple[int, int] | None = None, max_coc_px: float | None = None, tag: str = "") -> dict[str, Path]:
+               size: tuple[int, int] | None = None, max_coc_px: float | None = None, tag: str = "",
+               tile_px: int | None = None) -> dict[str, Path]:
     """The prior-initialised 1080p checkpoint (or ``checkpoint``, exported for plates of ``size``
-    ``(H, W)`` up to ``max_coc_px``) and its exports ``names`` (keys of ``EXPORTS``), files
-    ``<tag><name>.onnx``."""
+    ``(H, W)`` up to ``max_coc_px`` with ``tile_px`` px tiles) and its exports ``names`` (keys of
+    ``EXPORTS``), files ``<tag><name>.onnx``."""
     import torch
 
     from neuralbokeh.checkpoint import save_checkpoint
@@ -122,7 +124,8 @@ def make_model(out: Path, reuse: bool, names: tuple[str, ...] = tuple(EXPORTS), 
         path = out / f"{tag}{name}.onnx"
         if not (reuse and path.exists()):
             t = time.perf_counter()
-            rep = export_checkpoint(ckpt, path, kernels=kernels, fp16=fp16, threads=2, size=size, max_coc_px=max_coc_px)
+            rep = export_checkpoint(ckpt, path, kernels=kernels, fp16=fp16, threads=2, size=size, max_coc_px=max_coc_px,
+                                    tile_px=tile_px)
             print(f"exported {tag}{name:<13} in {time.perf_counter() - t:5.0f} s: kernels {rep['metadata']['kernels']}, "
                   f"parity {max(rep['parity'].values()):.1e}", flush=True)
         paths[name] = path
@@ -132,10 +135,10 @@ def make_model(out: Path, reuse: bool, names: tuple[str, ...] = tuple(EXPORTS), 
 def trained_loss(ckpt: Path, data: Path, out: Path, threads: int) -> None:
     """Held-out PSNR (normalised, the training metric) of a trained checkpoint's direct and
     default exports through the runtime, and ms per frame (median over the samples)."""
+    from neuralbokeh.checkpoint import load_checkpoint
     from neuralbokeh.data.dataset import FocalStackDataset
     from neuralbokeh.export.exporter import export_checkpoint
     from neuralbokeh.runtime.onnx_model import OnnxBokeh
-    from neuralbokeh.checkpoint import load_checkpoint
 
     if data is None:
         raise SystemExit("error: --trained needs --data (the dataset it was trained on)")
@@ -243,6 +246,8 @@ def main() -> None:
     p.add_argument("--model", type=Path, help="time this trained lens checkpoint instead of the untrained prior (exports "
                    "default and rows for --size plates; at 1080p next to the prior's default export)")
     p.add_argument("--size", type=int, nargs=2, default=(W, H), metavar=("W", "H"), help="the frame with --model")
+    p.add_argument("--tiles", type=int, nargs="*", default=[], metavar="PX",
+                   help="with --model: also its default export with tile cores of each PX px (export.py --tile)")
     p.add_argument("--worker", help=argparse.SUPPRESS)
     p.add_argument("--frame", type=Path, help=argparse.SUPPRESS)
     p.add_argument("--out", type=Path, help=argparse.SUPPRESS)
@@ -344,6 +349,11 @@ def model_speed(args: argparse.Namespace) -> None:
              t or args.threads) for e, f, t in (("default", "full", 0), ("default", "full", 1), ("default", "third", 0),
                                                 ("default", "half_in_focus", 0), ("rows", "full", 0), ("rows", "third", 0),
                                                 ("rows", "half_in_focus", 0))]
+    for tile in args.tiles:  # the same model with larger tiles: fewer, larger convolutions
+        big = make_model(args.out_dir, args.reuse, ("default",), checkpoint=args.model, size=(height, width),
+                         max_coc_px=beyond, tag=f"model_{width}x{height}_tile{tile}_", tile_px=tile)["default"]
+        rows += [(f"model, default export, tiles {tile}{', ' + f if f != 'full' else ''}", f"onnx:{big}", f, args.threads)
+                 for f in ("full", "third", "half_in_focus")]
     rows += [("exact-aperture scatter (7-gon)", "scatter", "full", args.threads),
              ("CoC Gaussian scatter", "gaussian", "full", args.threads)]
     if (width, height) == (W, H):  # today's way: the untrained prior's default export of the same frames
@@ -353,11 +363,12 @@ def model_speed(args: argparse.Namespace) -> None:
     results = _run_rows(rows, frames, args)
     _table(results, truth, "model, rows export")
     ms = {k: v["ms"] for k, v in results.items()}
-    for e in ("default", "rows"):
-        full = ms[f"model, {e} export"]
-        print(f"model, {e} export: {full:.0f} ms per frame, peak RSS {results[f'model, {e} export']['rss_mb'] / 1024:.2f} GB; "
-              f"max CoC / 3 {full / ms[f'model, {e} export, third']:.2f}x and half in focus "
-              f"{full / ms[f'model, {e} export, half_in_focus']:.2f}x faster than the full frame")
+    for e in ("default", "rows", *(f"default export, tiles {t}" for t in args.tiles)):
+        name = f"model, {e}" if "tiles" in e else f"model, {e} export"
+        full = ms[name]
+        print(f"{name}: {full:.0f} ms per frame, peak RSS {results[name]['rss_mb'] / 1024:.2f} GB; "
+              f"max CoC / 3 {full / ms[f'{name}, third']:.2f}x and half in focus "
+              f"{full / ms[f'{name}, half_in_focus']:.2f}x faster than the full frame")
     if "prior, default export" in ms:
         print(f"against the prior's default export (today's way): full {ms['prior, default export'] / ms['model, default export']:.2f}x, "
               f"max CoC / 3 {ms['prior, default export, third'] / ms['model, default export, third']:.2f}x, half in focus "

@@ -41,12 +41,13 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from bench_runtime import H, W, make_frame, make_model  # noqa: E402
+
 from neuralbokeh.checkpoint import load_model  # noqa: E402
+from neuralbokeh.core.tiling import pyramid_levels  # noqa: E402
 from neuralbokeh.export.exporter import plate_model  # noqa: E402
 from neuralbokeh.networks.lens import LensBokeh, _gate, band_scales, bucket_weights, reduce_kernel  # noqa: E402
 from neuralbokeh.ops.holes import _pull_push, occluders  # noqa: E402
 from neuralbokeh.ops.tiles import tile  # noqa: E402
-from neuralbokeh.core.tiling import pyramid_levels  # noqa: E402
 from neuralbokeh.runtime.onnx_model import OnnxBokeh, make_session  # noqa: E402
 
 

@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from neuralbokeh.core.cli import HelpFormatter, run_cli
-from neuralbokeh.data.dataset import load_scene
 from neuralbokeh.core.io import write_image, write_text
+from neuralbokeh.data.dataset import load_scene
 
 from .procedural import SceneParams, composite_sharp, make_layers
 

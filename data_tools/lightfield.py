@@ -354,7 +354,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--name", help="the scene folder's name (default: the views' folder name)")
     p.add_argument("--pattern", help="view file names with the view index, e.g. 'view_{:03d}.exr' (k = N row + col)")
     p.add_argument("--transfer", default="srgb", help="the encoding of integer view images: srgb, linear or gamma:G")
-    p.add_argument("--focus-disparities", help="comma-separated focus disparities in px, e.g. --focus-disparities=-1,0.5 (default: --slices uniform "
+    p.add_argument("--focus-disparities",
+                   help="comma-separated focus disparities in px, e.g. --focus-disparities=-1,0.5 (default: --slices uniform "
                         "between the 2nd and 98th percentile of the scene's)")
     p.add_argument("--signs", type=int, nargs=2, choices=(-1, 1), metavar=("SX", "SY"),
                    help="which way a point moves from view to view: x + SX d (col - c), y + SY d (row - c) (default: "

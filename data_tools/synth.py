@@ -28,9 +28,9 @@ from tqdm import tqdm
 from neuralbokeh import __version__
 from neuralbokeh.core.apertures import ApertureModel, parse_aperture
 from neuralbokeh.core.cli import HelpFormatter, run_cli
-from neuralbokeh.data.dataset import FocalStackDataset, read_scene_meta, write_scene
 from neuralbokeh.core.io import read_image
 from neuralbokeh.core.optics import ThinLens, blocks_for_coc, focus_sweep_m
+from neuralbokeh.data.dataset import FocalStackDataset, read_scene_meta, write_scene
 from neuralbokeh.render import scatter_layers
 
 from .procedural import SceneParams, composite_sharp, make_layers
@@ -99,7 +99,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sensor-width", type=float, default=36.0, help="sensor width in mm")
     p.add_argument("--near", type=float, default=0.7, help="nearest layer depth in m")
     p.add_argument("--far", type=float, default=20.0, help="farthest finite depth in m")
-    p.add_argument("--field-grid", type=int, default=None, help="image-position grid for cat-eye kernels (default: automatic, 1 px accuracy)")
+    p.add_argument("--field-grid", type=int, default=None,
+                   help="image-position grid for cat-eye kernels (default: automatic, 1 px accuracy)")
     p.add_argument("--workers", type=int, default=1, help="parallel worker processes")
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     return p

@@ -3,7 +3,21 @@ import math
 import numpy as np
 import pytest
 
-from neuralbokeh.core.apertures import ApertureModel, Disk, Gaussian, Heart, MaskAperture, Polygon, Ring, Star, aperture_from_dict, field_position, kernel_radius_px, parse_aperture, shape_kernel
+from neuralbokeh.core.apertures import (
+    ApertureModel,
+    Disk,
+    Gaussian,
+    Heart,
+    MaskAperture,
+    Polygon,
+    Ring,
+    Star,
+    aperture_from_dict,
+    field_position,
+    kernel_radius_px,
+    parse_aperture,
+    shape_kernel,
+)
 
 SHAPES = [Disk(), Polygon(7), Polygon(5, 20.0), Heart(), Ring(0.6), Star(5, 0.45), Gaussian()]
 

@@ -12,7 +12,7 @@ from neuralbokeh.core.apertures import ApertureModel, Disk, MaskAperture, Polygo
 from neuralbokeh.render import scatter_defocus
 from neuralbokeh.render.baselines import gather_defocus, pseudo_ray_trace
 from neuralbokeh.render.buckets import bucket_gather
-from neuralbokeh.render.lens_trace import refract, hidden_layer, lens_ray_trace, singlet_zone_profile
+from neuralbokeh.render.lens_trace import hidden_layer, lens_ray_trace, refract, singlet_zone_profile
 from neuralbokeh.render.pyramid import gaussian_spread_reference, pyramid_spread, quadtree_sites, tensor_filter
 
 SIZE = 48

@@ -43,8 +43,9 @@ def test_export_evaluate_composite_and_data_tools_mistakes(tmp_path):
     _one_error_line(_run("export.py", str(not_a_checkpoint), "--out", str(tmp_path / "m.onnx")), "not a neuralbokeh checkpoint")
     _one_error_line(_run("export.py", str(tmp_path / "missing.pt"), "--out", str(tmp_path / "m.onnx")), "missing.pt")
     _one_error_line(_run("-m", "neuralbokeh.evaluation", "--data", str(tmp_path / "nodata"), "--out", str(tmp_path / "r")), "nodata")
-    _one_error_line(_run("-m", "neuralbokeh.runtime.composite", "--model", str(tmp_path / "none.onnx"), "--plate", "p.exr", "--render", "r.exr",
-                         "--depth", "d.exr", "--alpha", "a.exr", "--focus", "2", "--out", str(tmp_path / "c.exr")), "none.onnx")
+    _one_error_line(_run("-m", "neuralbokeh.runtime.composite", "--model", str(tmp_path / "none.onnx"), "--plate", "p.exr",
+                         "--render", "r.exr", "--depth", "d.exr", "--alpha", "a.exr", "--focus", "2",
+                         "--out", str(tmp_path / "c.exr")), "none.onnx")
     _one_error_line(_run("-m", "data_tools.synth", "--out", str(tmp_path / "s"), "--size", "0", "0"), "--size")
     _one_error_line(_run("-m", "data_tools.raw", str(tmp_path / "nostack"), "--out", str(tmp_path / "o")), "nostack")
 

@@ -6,8 +6,8 @@ import torch
 from kornia.filters import gaussian_blur2d
 from kornia.morphology import erosion
 
-from neuralbokeh.runtime.composite import composite_frame, main
 from neuralbokeh.core.io import read_image, write_image
+from neuralbokeh.runtime.composite import composite_frame, main
 from neuralbokeh.runtime.masks import erode, gaussian_blur
 from neuralbokeh.runtime.onnx_model import OnnxBokeh
 

@@ -7,9 +7,9 @@ import pytest
 import torch
 
 from neuralbokeh.core.apertures import ApertureModel, Polygon
-from neuralbokeh.data.dataset import FocalStackDataset, Normalization, find_scenes, load_scene, split_scenes, write_scene
 from neuralbokeh.core.io import write_image
 from neuralbokeh.core.optics import ThinLens
+from neuralbokeh.data.dataset import FocalStackDataset, Normalization, find_scenes, load_scene, split_scenes, write_scene
 
 LENS = ThinLens(85.0, 1.4, 36.0)
 

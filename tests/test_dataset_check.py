@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 import torch
 
-from neuralbokeh.data.dataset import read_scene_meta
-from neuralbokeh.data.check import check_dataset
+from neuralbokeh.checkpoint import load_checkpoint
 from neuralbokeh.core.io import read_image, write_image
+from neuralbokeh.data.check import check_dataset
+from neuralbokeh.data.dataset import read_scene_meta
 from neuralbokeh.training import load_config, train
 from neuralbokeh.training import loop as loop_module
-from neuralbokeh.checkpoint import load_checkpoint
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -16,10 +16,10 @@ from data_tools.raw.__main__ import main as raw_main
 from data_tools.raw.developed import decode_developed, exposure_gains, parse_transfer
 from data_tools.raw.fuse import focus_measure
 from neuralbokeh.core.apertures import ApertureModel
-from neuralbokeh.data.dataset import load_scene
 from neuralbokeh.core.io import read_image, write_image
-from neuralbokeh.evaluation.metrics import image_metrics
 from neuralbokeh.core.optics import ThinLens, focus_sweep_m
+from neuralbokeh.data.dataset import load_scene
+from neuralbokeh.evaluation.metrics import image_metrics
 from neuralbokeh.render import scatter_layers
 
 LENS = ThinLens(50.0, 1.8, 12.0)

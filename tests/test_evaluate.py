@@ -114,8 +114,8 @@ def test_report_files_and_identity_row(tiny_dataset, busy_onnx, tmp_path):
 
 
 def test_split_all_and_the_default_split_follows_the_training_run(tiny_dataset, busy_checkpoint, busy_onnx, tmp_path):
-    from neuralbokeh.evaluation.evaluate import load_model_method, split_of_models
     from neuralbokeh.checkpoint import load_checkpoint, save_checkpoint
+    from neuralbokeh.evaluation.evaluate import load_model_method, split_of_models
 
     rc = main(["--data", str(tiny_dataset), "--baselines", "identity", "--split", "all", "--out", str(tmp_path / "all"),
                "--repeats", "1", "--threads", "1"])
@@ -125,7 +125,8 @@ def test_split_all_and_the_default_split_follows_the_training_run(tiny_dataset, 
     # the split is the training run's unless given: from a checkpoint and from its export
     data = load_checkpoint(busy_checkpoint)
     data["train_config"]["data"].update(test_fraction=0.4, split_seed=7)
-    other = save_checkpoint(tmp_path / "other.pt", {k: v for k, v in data.items() if k not in ("format", "format_version", "package_version")})
+    other = save_checkpoint(tmp_path / "other.pt",
+                            {k: v for k, v in data.items() if k not in ("format", "format_version", "package_version")})
     loaded = load_model_method(other, 1)
     assert split_of_models([loaded], None, None) == (0.4, 7)
     assert split_of_models([loaded], 0.2, None) == (0.2, 7)  # a given value wins (with a warning)

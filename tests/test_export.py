@@ -11,16 +11,14 @@ import pytest
 import torch
 from onnx import TensorProto, helper
 
-from neuralbokeh.export.exporter import calibration_inputs, export_checkpoint, probe_inputs, run_session
-from neuralbokeh.export.graph import GraphBuilder
+from neuralbokeh.checkpoint import load_checkpoint, load_model, save_checkpoint
 from neuralbokeh.core.contract import Contract
 from neuralbokeh.core.normalization import Normalization
-from neuralbokeh.export.lens_graph import (LENS_DEFAULT_KERNELS, _conv_rows, _hidden_background, _Nodes,
-                                          _window_max)
+from neuralbokeh.export.exporter import calibration_inputs, export_checkpoint, probe_inputs, run_session
+from neuralbokeh.export.graph import GraphBuilder
+from neuralbokeh.export.lens_graph import LENS_DEFAULT_KERNELS, Nodes, conv_rows, hidden_background_graph, window_max
 from neuralbokeh.export.lowrank import cheaper_ranks, factorize, parse_kernels, reconstruct, relative_error
-from neuralbokeh.checkpoint import load_model
 from neuralbokeh.ops.holes import hidden_background
-from neuralbokeh.checkpoint import load_checkpoint
 from neuralbokeh.runtime.onnx_model import make_session
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -166,7 +164,7 @@ def test_multires_export_matches_its_pytorch_reference(busy_checkpoint, tmp_path
     approximation in PyTorch), which differs from the exact network by the reported amount."""
     model, _ = load_model(busy_checkpoint)
     report = export_checkpoint(busy_checkpoint, tmp_path / "m.onnx", kernels="multires:2", threads=1)
-    scales = {int(k[4:]): v["scale"] for k, v in report["kernels"].items()}
+    scales = report["band_scales"]
     assert max(scales.values()) >= 2 and min(scales.values()) == 1  # the tiny model's wide bands are reduced
     assert max(report["parity"].values()) <= 1e-4 and max(report["approximation"].values()) > 1e-4
     x = calibration_inputs(*model.contract.size, count=2, seed=9)
@@ -188,9 +186,9 @@ def test_graph_fill_is_the_hidden_background(h, w, c_max):
     coc[..., h // 3 : 2 * h // 3, w // 4 :] = -c_max  # a blurred foreground block, an occluder at its edges
     coc[1, :, : h // 4] = c_max * 0.8  # and a far band in image 1
     contract = Contract(h, w, norm, c_max, c_max)
-    g = _Nodes(GraphBuilder(), "g")
+    g = Nodes(GraphBuilder(), "g")
     radius = int(np.ceil(c_max / 2))
-    out = _hidden_background(g, "x", contract, radius)
+    out = hidden_background_graph(g, "x", contract, radius)
     graph = helper.make_graph(g.nodes, "fill", [helper.make_tensor_value_info("x", TensorProto.FLOAT, [2, 4, h, w])],
                               [helper.make_tensor_value_info(out, TensorProto.FLOAT, None)], g.b.initializers)
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)])
@@ -208,9 +206,9 @@ def test_window_max_is_the_sliding_maximum(r, h, w):
     """The doubling Slice-Max of the fill's occluder search against a literal sliding maximum
     (windows clipped at the edges), along rows and columns, windows wider than the image included."""
     x = np.random.default_rng(r * h * w).normal(size=(2, 1, h, w)).astype(np.float32)
-    g = _Nodes(GraphBuilder(), "g")
-    rows = _window_max(g, "x", r, 3, w)
-    both = _window_max(g, rows, r, 2, h)
+    g = Nodes(GraphBuilder(), "g")
+    rows = window_max(g, "x", r, 3, w)
+    both = window_max(g, rows, r, 2, h)
     graph = helper.make_graph(g.nodes, "max", [helper.make_tensor_value_info("x", TensorProto.FLOAT, [2, 1, h, w])],
                               [helper.make_tensor_value_info(o, TensorProto.FLOAT, None) for o in (rows, both)], g.b.initializers)
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)])
@@ -224,13 +222,13 @@ def test_window_max_is_the_sliding_maximum(r, h, w):
 
 @pytest.mark.parametrize("k, size, channels", [(3, 5, 6), (7, 12, 6), (15, 9, 2), (21, 16, 3)])
 def test_row_convolution_is_the_depthwise_convolution(k, size, channels):
-    """``_conv_rows`` (row GEMMs + Col2Im) against torch's depthwise conv2d, 'same' size and
+    """``conv_rows`` (row GEMMs + Col2Im) against torch's depthwise conv2d, 'same' size and
     zero padding, kernels wider than the image included: equal to float32 rounding."""
     gen = torch.Generator().manual_seed(k)
     x = torch.rand(2, channels, size, size, generator=gen)
     w = torch.rand(channels, 1, k, k, generator=gen) - 0.3  # asymmetric, signed: a flipped row would show
-    g = _Nodes(GraphBuilder(), "t")
-    out = _conv_rows(g, "x", w.numpy(), size, fp16=False)
+    g = Nodes(GraphBuilder(), "t")
+    out = conv_rows(g, "x", w.numpy(), size, fp16=False)
     g.nodes.append(helper.make_node("Identity", [out], ["y"]))
     graph = helper.make_graph(g.nodes, "rows", [helper.make_tensor_value_info("x", TensorProto.FLOAT, [2, channels, size, size])],
                               [helper.make_tensor_value_info("y", TensorProto.FLOAT, None)], g.b.initializers)
@@ -254,6 +252,31 @@ def test_rows_export_is_the_direct_export(busy_checkpoint, tmp_path):
     assert np.abs(rows - direct).max() < 1e-5
     half = export_checkpoint(busy_checkpoint, tmp_path / "h.onnx", kernels="rows", fp16=True, threads=1)
     assert max(half["parity"].values()) <= 2e-2
+
+
+def test_an_export_may_choose_its_tiles_and_only_the_field_sampling_changes(busy_checkpoint, tmp_path):
+    """Tile cores are an export setting: with one pupil over the whole sensor a file with larger
+    tiles renders what the trained tiles render; with a field-dependent pupil it samples the field
+    at fewer places and differs, while matching its own PyTorch model (the export's parity)."""
+    data = load_checkpoint(busy_checkpoint)
+    flat = dict(data, model_state={k: (torch.zeros_like(v) if k == "pupil_field" else v) for k, v in data["model_state"].items()})
+    save_checkpoint(tmp_path / "flat.pt", {k: v for k, v in flat.items() if k not in ("format", "format_version", "package_version")})
+    model, _ = load_model(busy_checkpoint)
+    x = calibration_inputs(*model.contract.size, count=2, seed=6)
+    aif, coc = x[:, :3].numpy(), x[:, 3:].numpy()
+    out = {}
+    for ckpt in (busy_checkpoint, tmp_path / "flat.pt"):
+        for tile in (None, 32):
+            path = tmp_path / f"{Path(ckpt).stem}_{tile}.onnx"
+            report = export_checkpoint(ckpt, path, kernels="direct", threads=1, tile_px=tile)
+            assert max(report["parity"].values()) <= 1e-4
+            assert report["metadata"]["model_config"]["tile"] == (tile or model.config.tile)
+            out[Path(ckpt).stem, tile] = _run_onnx(path, aif, coc)
+    assert report["metadata"]["layout"][:2] == [1, 2]  # 32 x 40 px: one row of two 32 px cores
+    assert np.abs(out["flat", None] - out["flat", 32]).max() < 1e-5
+    assert np.abs(out["busy", None] - out["busy", 32]).max() > 1e-3
+    with pytest.raises(ValueError, match="tile_px must be a whole number of px >= twice the trained overlap"):
+        export_checkpoint(busy_checkpoint, tmp_path / "x.onnx", tile_px=model.config.overlap)
 
 
 def test_files_of_earlier_formats_are_refused_in_one_line(busy_checkpoint, busy_onnx, tmp_path):

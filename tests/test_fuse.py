@@ -10,8 +10,8 @@ import torch
 from data_tools.procedural import SceneParams, composite_sharp, make_layers
 from data_tools.raw.fuse import focus_measure, fuse_stack, peak_diopters
 from neuralbokeh.core.apertures import ApertureModel
-from neuralbokeh.evaluation.metrics import image_metrics
 from neuralbokeh.core.optics import ThinLens, focus_sweep_m
+from neuralbokeh.evaluation.metrics import image_metrics
 from neuralbokeh.render import scatter_layers
 
 LENS = ThinLens(50.0, 1.8, 12.0)

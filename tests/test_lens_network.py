@@ -5,11 +5,11 @@ import pytest
 import torch
 
 from neuralbokeh.core.apertures import ApertureModel, Disk
-from neuralbokeh.core.contract import Contract
 from neuralbokeh.core.bands import band_diameters
-from neuralbokeh.networks.lens import band_gates, band_scales, bucket_weights, reduce_kernel
-from neuralbokeh.networks import ModelConfig, build_model
+from neuralbokeh.core.contract import Contract
 from neuralbokeh.core.normalization import Normalization
+from neuralbokeh.networks import ModelConfig, build_model
+from neuralbokeh.networks.lens import band_gates, band_scales, bucket_weights, reduce_kernel
 from neuralbokeh.render import scatter_defocus, scatter_layers
 
 NORM = Normalization()
@@ -285,3 +285,10 @@ def test_the_fill_defaults_to_the_background_and_refuses_unknown_fills():
     assert ModelConfig.from_dict(d).fill == "background"  # left out: the dataclass's default
     with pytest.raises(ValueError, match="fill must be one of"):
         ModelConfig(blocks=2, fill="inpaint")
+
+
+def test_a_coc_scale_the_blocks_cannot_cover_is_refused():
+    # 6 blocks cover CoCs up to 13 px (d_6 = 13 = 2 * 6 + 1); a 20 px scale would cut every band's kernel
+    with pytest.raises(ValueError, match=r"a CoC scale of 20 px over 6 blocks .* use at least 10 blocks"):
+        build_model(ModelConfig(blocks=6, tile=24, overlap=8), Contract(48, 48, NORM, 20.0, 20.0))
+    assert build_model(ModelConfig(blocks=6, tile=24, overlap=8), Contract(48, 48, NORM, 13.0, 13.0)).step_px == 2.0

@@ -5,8 +5,18 @@ import numpy as np
 import pytest
 import torch
 
-from data_tools.lightfield import (build_scene, discrete_aperture, estimate_signs, load_disparity, load_views, main,
-                                   refocus, view_disagreement, view_offsets, view_weights)
+from data_tools.lightfield import (
+    build_scene,
+    discrete_aperture,
+    estimate_signs,
+    load_disparity,
+    load_views,
+    main,
+    refocus,
+    view_disagreement,
+    view_offsets,
+    view_weights,
+)
 from neuralbokeh.core.apertures import ApertureModel, parse_aperture
 from neuralbokeh.data.check import check_scene
 from neuralbokeh.data.dataset import load_scene

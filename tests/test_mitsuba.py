@@ -11,14 +11,13 @@ import torch
 pytest.importorskip("mitsuba", reason="mitsuba is not installed (pip install mitsuba)")
 
 from data_tools.mitsuba.__main__ import main, parse_shard, shard_indices  # noqa: E402
-from data_tools.mitsuba.render import (  # noqa: E402
-    mitsuba_defocus, planar_depth_from_aov, render_aif, render_depth, tangent_grid)
+from data_tools.mitsuba.render import mitsuba_defocus, planar_depth_from_aov, render_aif, render_depth, tangent_grid  # noqa: E402
 from data_tools.mitsuba.scenes import Camera, fov_for_lens  # noqa: E402
 from data_tools.mitsuba.variant import activate, llvm_candidates, probe  # noqa: E402
 from neuralbokeh.core.apertures import ApertureModel, Disk, MaskAperture, Polygon
+from neuralbokeh.core.optics import ThinLens
 from neuralbokeh.data.dataset import FocalStackDataset
 from neuralbokeh.evaluation.metrics import image_metrics
-from neuralbokeh.core.optics import ThinLens
 from neuralbokeh.render import render_defocus as scatter_render
 
 
@@ -37,7 +36,8 @@ def _rect(mi, z, half, albedo, tilt_deg=0.0, x=0.0, texture=None):
     bsdf = {"type": "diffuse", "reflectance": {"type": "rgb", "value": albedo}}
     if texture is not None:
         bsdf = {"type": "diffuse", "reflectance": {"type": "bitmap", "bitmap": mi.Bitmap(texture), "raw": True}}
-    return {"type": "rectangle", "bsdf": bsdf, "to_world": T().translate([x, 0.0, z]).rotate([0, 1, 0], 180.0 + tilt_deg).scale([half, half, 1.0])}
+    to_world = T().translate([x, 0.0, z]).rotate([0, 1, 0], 180.0 + tilt_deg).scale([half, half, 1.0])
+    return {"type": "rectangle", "bsdf": bsdf, "to_world": to_world}
 
 
 def _point_scene(mi, camera, depth_m, x_tan=0.0, y_tan=0.0, radius_px=0.2):

@@ -12,9 +12,9 @@ from kornia.filters import gaussian_blur2d, laplacian
 from data_tools.raw.__main__ import main as raw_main
 from data_tools.raw.decode import RawDecodeError, decode, read_metadata, white_balance
 from data_tools.raw.synthetic import BLACK, WHITE, make_stack, mosaic, write_dng
-from neuralbokeh.data.dataset import FocalStackDataset, load_scene
 from neuralbokeh.core.io import read_image
 from neuralbokeh.core.optics import SensorWindow, ThinLens
+from neuralbokeh.data.dataset import FocalStackDataset, load_scene
 
 LENS = ThinLens(50.0, 1.8, 12.0)
 
@@ -160,7 +160,7 @@ def test_train_py_consumes_the_raw_dataset(stack, tmp_path):
 roots = ["{root / 'ds'}"]
 test_fraction = 0.0
 [model]
-blocks = 2
+blocks = "auto"
 features = 2
 tile = 32
 overlap = 8

@@ -87,3 +87,22 @@ def test_readme_is_the_manual_and_docs_hold_the_record():
     assert len(readme.splitlines()) <= 250
     # measured tables belong in docs/benchmarks.md, each after its command
     assert not re.search(r"^\| .*\b(ms|dB|PSNR)\b.*\|$", readme, flags=re.M), "a measured table in the README"
+
+
+def test_the_install_table_names_every_dependency():
+    """Each row of the README's install table lists what that extra pulls in ``pyproject.toml``."""
+    import tomllib
+
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    groups = {"runtime": project["dependencies"], **{k: v for k, v in project["optional-dependencies"].items() if k != "runtime"}}
+    rows = {m.group(1): m.group(0) for m in re.finditer(r'^\| `(?:pip install "neuralbokeh)?\[(\w+)\].*$',
+                                                       (ROOT / "README.md").read_text(), flags=re.M)}
+    for group, deps in groups.items():
+        if group == "tensorboard":
+            continue  # an optional curve viewer, named where training's logs are described
+        assert group in rows, f"no README install row for [{group}]"
+        for dep in deps:
+            name = re.match(r"[A-Za-z0-9_.-]+", dep).group(0)
+            if name == "neuralbokeh":
+                continue  # another extra of this package, named in its row as "[train]" or "everything above"
+            assert name.lower() in rows[group].lower(), f"README's [{group}] row does not name {name}: {rows[group]}"

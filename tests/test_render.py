@@ -8,10 +8,10 @@ import torch.nn.functional as F
 from neuralbokeh.core.apertures import ApertureModel, Disk, Heart, Polygon, Star, shape_kernel
 from neuralbokeh.core.optics import ThinLens
 from neuralbokeh.ops.fftconv import fft_convolve2d
-from neuralbokeh.render import render_defocus, scatter_defocus, scatter_layers
 from neuralbokeh.ops.holes import hidden_background
-from neuralbokeh.render.scatter import auto_field_grid
+from neuralbokeh.render import render_defocus, scatter_defocus, scatter_layers
 from neuralbokeh.render.reference import reference_scatter_defocus, reference_scatter_layers
+from neuralbokeh.render.scatter import auto_field_grid
 
 LENS = ThinLens(50.0, 1.4, 36.0)
 TELE = ThinLens(200.0, 2.8, 36.0)  # CoC of 15..40 px on the tiny test images
@@ -98,7 +98,8 @@ def test_defocus_from_coc_map_matches_reference(occlusion, fill):
 
 def _sloped_foreground_scene(size=48):
     """A sloped textured foreground square (CoC -13.5 .. -10.5 px down the rows, so the depth
-    map cuts it into horizontal slices, all of which meet its left and right silhouettes) in front of an in-focus textured background that the layers know in full."""
+    map cuts it into horizontal slices, all of which meet its left and right silhouettes) in
+    front of an in-focus textured background that the layers know in full."""
     g = torch.Generator().manual_seed(4)
     bg = torch.rand(1, 3, size, size, dtype=torch.float64, generator=g) * 0.5 + 0.1
     fg = torch.rand(1, 3, size, size, dtype=torch.float64, generator=g) * 0.5 + 1.0

@@ -99,7 +99,8 @@ def test_torch_free_wing_never_imports_torch():
                      for folder in TORCH_FREE for p in (ROOT / "neuralbokeh" / folder).rglob("*.py") if p.name != "__main__.py")
     for path in (p for folder in TORCH_FREE for p in (ROOT / "neuralbokeh" / folder).rglob("*.py")):
         assert not any(n.split(".")[0] in ("torch", "kornia") for n in _imports(path)), path
-    code = f"import sys, importlib; [importlib.import_module(m) for m in {modules!r}]; assert 'torch' not in sys.modules, 'torch was imported'"
+    code = (f"import sys, importlib; [importlib.import_module(m) for m in {modules!r}]; "
+            "assert 'torch' not in sys.modules, 'torch was imported'")
     subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)
 
 
@@ -159,3 +160,9 @@ def test_no_module_cycle():
     for module in sorted(graph):
         if module not in done:
             visit(module)
+
+
+def test_the_code_passes_the_linter():
+    # ruff's settings live in pyproject.toml: pyflakes, pycodestyle, import order, 140 columns
+    proc = subprocess.run([sys.executable, "-m", "ruff", "check", "--no-cache", "."], cwd=ROOT, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-1000:]

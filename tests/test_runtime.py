@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from neuralbokeh.runtime.onnx_model import OnnxBokeh
 from neuralbokeh.checkpoint import load_model
+from neuralbokeh.runtime.onnx_model import OnnxBokeh
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -14,15 +14,14 @@ import pytest
 import torch
 from conftest import busy
 
-from neuralbokeh.export.exporter import DEFAULT_TOLERANCE as TOLERANCE
-from neuralbokeh.export.exporter import export_checkpoint, plate_model, probe_inputs, run_session
-from neuralbokeh.runtime.onnx_model import make_session as session
-from neuralbokeh.networks import ModelConfig, build_model
+from neuralbokeh.checkpoint import load_model, save_checkpoint
 from neuralbokeh.core.contract import Contract
 from neuralbokeh.core.normalization import Normalization
 from neuralbokeh.core.optics import SensorWindow, ThinLens
-from neuralbokeh.checkpoint import load_model
-from neuralbokeh.checkpoint import save_checkpoint
+from neuralbokeh.export.exporter import DEFAULT_TOLERANCE as TOLERANCE
+from neuralbokeh.export.exporter import export_checkpoint, plate_model, probe_inputs, run_session
+from neuralbokeh.networks import ModelConfig, build_model
+from neuralbokeh.runtime.onnx_model import make_session as session
 
 
 def _random_checkpoint(path, height, width, architecture, blocks=3):
@@ -56,7 +55,7 @@ def test_extreme_cases_are_finite_bounded_and_within_parity(checkpoint, fp16, ke
     if kernels != "direct" and cfg.architecture != "lens":
         pytest.skip("coarser band grids are the lens network's export option")
     report = export_checkpoint(checkpoint, tmp_path / "m.onnx", fp16=fp16, kernels=kernels, threads=1)
-    scales = {int(k[4:]): v["scale"] for k, v in report["kernels"].items()} if cfg.architecture == "lens" else None
+    scales = report["band_scales"]
     sess = session(str(tmp_path / "m.onnx"), threads=1)
     norm = Normalization()
     for name, (aif, coc) in probe_inputs(*model.contract.size).items():
@@ -73,13 +72,25 @@ def test_extreme_cases_are_finite_bounded_and_within_parity(checkpoint, fp16, ke
         assert report["parity"]["highlights_1e4"] <= 1e-4
 
 
-def test_pytorch_model_refuses_nan_and_inf_inputs(busy_checkpoint):
+def test_pytorch_model_refuses_nan_and_inf_inputs(busy_checkpoint, monkeypatch):
+    """Where inputs enter (the contract's encoding) always; inside forward with the debug switch."""
+    from neuralbokeh.core import checks
+
     model, _ = load_model(busy_checkpoint)
     x = torch.zeros(1, 4, *model.contract.size)
+    aif, coc = torch.full((1, 3, *model.contract.size), 0.18), torch.zeros(1, 1, *model.contract.size)
     for bad in (float("nan"), float("inf")):
         x[0, 1, 3, 5] = bad
+        coc[0, 0, 3, 5], aif[0, 2, 4, 6] = bad, 0.18
+        with pytest.raises(ValueError, match=r"CoC in px must be finite, got (nan|inf) at pixel \(3, 5\)"):
+            model.contract.apply(model, aif, coc)
+        coc[0, 0, 3, 5], aif[0, 2, 4, 6] = 0.0, bad
+        with pytest.raises(ValueError, match=r"linear colour must be finite and >= .*, got (nan|inf) at pixel \(4, 6\)"):
+            model.contract.apply(model, aif, coc)
+        monkeypatch.setattr(checks, "DEBUG", True)
         with pytest.raises(ValueError, match=r"model input must be finite, got (nan|inf) at pixel \(3, 5\)"):
             model(x)
+        monkeypatch.setattr(checks, "DEBUG", False)
 
 
 @pytest.mark.parametrize("case, size, window, coc_factor", [

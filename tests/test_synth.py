@@ -6,9 +6,9 @@ import pytest
 
 from data_tools.synth import main
 from neuralbokeh.core.apertures import ApertureModel, Polygon
-from neuralbokeh.data.dataset import find_scenes, load_scene
 from neuralbokeh.core.io import write_image
 from neuralbokeh.core.optics import ThinLens
+from neuralbokeh.data.dataset import find_scenes, load_scene
 
 ARGS = ["--size", "40", "32", "--slices", "3", "--aperture", "polygon:7", "--cat-eye", "0.5", "--seed", "7"]
 

@@ -16,8 +16,8 @@ from neuralbokeh.data.dataset import FocalStackDataset
 from neuralbokeh.networks.config import ModelConfig
 from neuralbokeh.training import load_config, train
 from neuralbokeh.training import loop as loop_module
-from neuralbokeh.training.loop import Samples, held_out_metrics
 from neuralbokeh.training.config import build_config
+from neuralbokeh.training.loop import Samples, held_out_metrics
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -24,9 +24,9 @@ from tqdm import tqdm
 from neuralbokeh import __version__
 from neuralbokeh.core.apertures import ApertureModel, parse_aperture
 from neuralbokeh.core.cli import HelpFormatter, run_cli
-from neuralbokeh.data.dataset import write_scene
 from neuralbokeh.core.io import atomic_directory, read_image, write_image, write_json
 from neuralbokeh.core.optics import ThinLens, focus_sweep_m
+from neuralbokeh.data.dataset import write_scene
 
 from .render import METHODS, choose_method, mitsuba_defocus, render_aif, render_depth, render_light_field
 from .scenes import Camera, MitsubaSceneParams, camera_from_xml, fov_for_lens, procedural_scene
@@ -142,7 +142,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--vignetting-radius", type=float, default=1.0, help="radius of the vignetting circle, aperture radii")
     p.add_argument("--focal-length", type=float, default=50.0, help="focal length in mm")
     p.add_argument("--f-number", type=float, default=2.0, help="f-number")
-    p.add_argument("--sensor-width", type=float, default=36.0, help="sensor width in mm (with --scene-xml --camera file: from the file's fov)")
+    p.add_argument("--sensor-width", type=float, default=36.0,
+                   help="sensor width in mm (with --scene-xml --camera file: from the file's fov)")
     p.add_argument("--near", type=float, default=0.7, help="nearest procedural object in m")
     p.add_argument("--far", type=float, default=12.0, help="back wall of the procedural scenes in m")
     p.add_argument("--spp", type=int, default=256, help="samples per pixel per defocused slice (the budget)")
@@ -195,7 +196,8 @@ def main(argv: list[str] | None = None) -> int:
             indices = [0]
         else:
             look = mi.ScalarTransform4f().look_at(origin=[0, 0, 0], target=[0, 0, 1], up=[0, 1, 0])
-            cam = Camera(np.array(look.matrix, dtype=np.float64).reshape(4, 4), fov_for_lens(args.focal_length, args.sensor_width), *args.size)
+            cam = Camera(np.array(look.matrix, dtype=np.float64).reshape(4, 4), fov_for_lens(args.focal_length, args.sensor_width),
+                         *args.size)
             sensor_width = args.sensor_width
             indices = shard_indices(args.scenes, shard)
         lens = ThinLens(args.focal_length, args.f_number, sensor_width)

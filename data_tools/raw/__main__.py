@@ -36,7 +36,6 @@ from .developed import parse_transfer
 from .pipeline import process_stack
 
 
-
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m data_tools.raw", description=__doc__,
                                 formatter_class=HelpFormatter)

@@ -24,9 +24,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 import torch.nn.functional as F
+from kornia.filters import gaussian_blur2d
 from kornia.geometry import create_meshgrid
 from kornia.geometry.linalg import transform_points
-from kornia.filters import gaussian_blur2d
 from kornia.geometry.transform import HomographyWarper, ImageRegistrator
 from kornia.geometry.transform.image_registrator import Similarity
 

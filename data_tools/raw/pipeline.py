@@ -15,9 +15,9 @@ import torch.nn.functional as F
 from tqdm import tqdm
 
 from neuralbokeh import __version__
-from neuralbokeh.data.dataset import write_scene
 from neuralbokeh.core.io import read_image
 from neuralbokeh.core.optics import SensorWindow, ThinLens
+from neuralbokeh.data.dataset import write_scene
 
 from .align import align_stack
 from .decode import (

@@ -27,9 +27,9 @@ def lattice_step(c_train_px: float, blocks: int) -> float:
     return (max(c_train_px, POINT_PX) - POINT_PX) / blocks if blocks > 0 else 2.0
 
 
-def band_diameters(c_max: float, blocks: int) -> np.ndarray:
-    """Centres ``d_0 = 0, d_n = 1 + n (c_max - 1) / N`` (px) of the CoC bands, ``(N + 1,)``."""
-    d = POINT_PX + np.arange(blocks + 1) * (max(c_max, POINT_PX) - POINT_PX) / max(blocks, 1)
+def band_diameters(max_coc_px: float, blocks: int) -> np.ndarray:
+    """Centres ``d_0 = 0, d_n = 1 + n (max_coc_px - 1) / N`` (px) of the CoC bands, ``(N + 1,)``."""
+    d = POINT_PX + np.arange(blocks + 1) * (max(max_coc_px, POINT_PX) - POINT_PX) / max(blocks, 1)
     d[0] = 0.0
     return d
 

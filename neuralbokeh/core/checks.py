@@ -11,9 +11,15 @@ where the first one is, e.g. ``depth must be > 0 m, got -1.0 at pixel (12, 40) (
 
 from __future__ import annotations
 
+import os
 from typing import Any
 
 import numpy as np
+
+# Value checks inside the networks' forward passes copy a mask to the host on every call (a
+# GPU sync per training step), so they run only when NEURALBOKEH_DEBUG=1 (or this is set True);
+# inputs are checked where they enter: the dataset check, Contract.encode_inputs, the runtime.
+DEBUG = os.environ.get("NEURALBOKEH_DEBUG", "") == "1"
 
 
 def is_tensor(x: Any) -> bool:

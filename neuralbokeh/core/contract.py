@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from .checks import is_tensor
+from .checks import check_finite, is_tensor
 from .normalization import Normalization
 from .optics import ThinLens
 
@@ -78,6 +78,7 @@ class Contract:
     def encode_inputs(self, aif: Any, coc_px: Any) -> tuple[Any, Any]:
         """Linear RGB and signed CoC in px (numpy or torch, any matching shapes) -> what the
         network sees: ``(normalised colour, coc_px / coc_scale_px)``."""
+        check_finite("CoC in px", coc_px)
         return self.normalization.encode(aif), coc_px / self.coc_scale_px
 
     def network_input(self, aif: Any, coc_px: Any) -> Any:

@@ -96,22 +96,28 @@ def check_scene(folder: str | os.PathLike, coc_tolerance: tuple[float, float] = 
             continue
         largest = max(largest, float(np.abs(coc).max()))
         if depth is not None and lens is not None:
-            try:
-                want = lens.coc_px(depth, float(sl["focus_m"]), w, signed=True, window=window)
-            except (KeyError, ValueError) as e:
-                problems.append(f"{folder / 'scene.json'}: slice {k}: {e}")
-                continue
-            off = np.abs(coc - want) > rtol * np.abs(want) + atol
-            if off.any():
-                i = np.unravel_index(int(np.argmax(np.abs(coc - want))), coc.shape)
-                problems.append(f"{folder / sl['coc']}: CoC differs from the lens and focus of scene.json "
-                                f"(focus {sl['focus_m']} m) by up to {abs(coc[i] - want[i]):.4g} px "
-                                f"({coc[i]:.4g} vs {want[i]:.4g} at (row {i[0]}, col {i[1]})), {_first_bad(off)}")
+            problems += _coc_problems(folder, k, sl, coc, depth, lens, window, w, coc_tolerance)
     recorded = float(meta["max_abs_coc_px"])
     if largest > recorded * (1 + rtol) + atol:
         problems.append(f"{folder / 'scene.json'}: max_abs_coc_px {recorded:.4g} is below the largest |CoC| of "
                         f"its files, {largest:.4g} px")
     return problems
+
+
+def _coc_problems(folder: Path, k: int, sl: dict, coc: np.ndarray, depth: np.ndarray, lens: ThinLens,
+                  window: SensorWindow, width: int, coc_tolerance: tuple[float, float]) -> list[str]:
+    """Where slice ``k``'s CoC map (px) disagrees with its depth (m), lens and focus distance."""
+    rtol, atol = coc_tolerance
+    try:
+        want = lens.coc_px(depth, float(sl["focus_m"]), width, signed=True, window=window)
+    except (KeyError, ValueError) as e:
+        return [f"{folder / 'scene.json'}: slice {k}: {e}"]
+    off = np.abs(coc - want) > rtol * np.abs(want) + atol
+    if not off.any():
+        return []
+    i = np.unravel_index(int(np.argmax(np.abs(coc - want))), coc.shape)
+    return [f"{folder / sl['coc']}: CoC differs from the lens and focus of scene.json (focus {sl['focus_m']} m) by up to "
+            f"{abs(coc[i] - want[i]):.4g} px ({coc[i]:.4g} vs {want[i]:.4g} at (row {i[0]}, col {i[1]})), {_first_bad(off)}"]
 
 
 def shared_lens_problems(scenes: Sequence[Path]) -> list[str]:

@@ -271,7 +271,8 @@ class FocalStackDataset(torch.utils.data.Dataset):
         check_positive("coc_scale_px", self.coc_scale_px, " px")
         self.normalization = normalization or Normalization()
         self.normalize = normalize
-        log.info("FocalStackDataset(%s): %d scenes, %d samples, max |CoC| %.2f px", split, len(self.scenes), len(self.items), self.max_coc_px)
+        log.info("FocalStackDataset(%s): %d scenes, %d samples, max |CoC| %.2f px", split, len(self.scenes), len(self.items),
+                 self.max_coc_px)
 
     def __len__(self) -> int:
         return len(self.items)

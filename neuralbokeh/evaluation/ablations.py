@@ -19,11 +19,11 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from ..data.dataset import FocalStackDataset
-from .evaluate import evaluate_methods, model_method
 from ..core.io import write_json, write_text
+from ..data.dataset import FocalStackDataset
 from ..training.config import load_config
 from ..training.loop import train
+from .evaluate import evaluate_methods, model_method
 
 log = logging.getLogger(__name__)
 
@@ -35,8 +35,8 @@ VARIANTS: dict[str, list[str]] = {
     "no_overlap": ["model.tiling='no_overlap'"],
     "tile_loss": ["train.loss='tile'"],
 }
-LABELS = {"full": "Lens network (default)", "paper": "Neural Bokeh as in the paper", "fixed3_kernels": "3x3 kernel size", "no_tiling": "No tiling",
-          "no_overlap": "Tiling w/o overlap", "tile_loss": "Loss per tile"}
+LABELS = {"full": "Lens network (default)", "paper": "Neural Bokeh as in the paper", "fixed3_kernels": "3x3 kernel size",
+          "no_tiling": "No tiling", "no_overlap": "Tiling w/o overlap", "tile_loss": "Loss per tile"}
 
 
 def run_ablations(config: Path, data: Path, out: Path, minutes: float, overrides: list[str] = (),

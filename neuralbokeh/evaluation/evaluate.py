@@ -40,16 +40,16 @@ from tqdm import tqdm
 
 from ..core.apertures import ApertureModel
 from ..core.cli import HelpFormatter
-from ..data.dataset import FocalStackDataset
-from ..data.check import require_sound
-from ..core.io import atomic_write, write_json, write_text, prepare_output
-from .metrics import image_metrics, pareto_front, tonemap_srgb
 from ..core.contract import Contract
+from ..core.io import atomic_write, prepare_output, write_json, write_text
+from ..data.check import require_sound
+from ..data.dataset import FocalStackDataset
 from ..render import scatter_defocus
 from ..render.baselines import gather_defocus, gaussian_defocus, pseudo_ray_trace
 from ..render.buckets import bucket_gather
 from ..render.lens_trace import lens_ray_trace
 from ..render.pyramid import pyramid_spread, tensor_filter
+from .metrics import image_metrics, pareto_front, tonemap_srgb
 
 log = logging.getLogger(__name__)
 BASELINES = ("identity", "gaussian", "gather", "raytrace", "buckets", "pyramid", "tensor", "lenstrace", "scatter")
@@ -262,7 +262,8 @@ def _grid(plt: Any, out: Path, label: str, ref: str, it: dict, names: list[str],
             a.set_yticks([])
     axes[0, 0].set_ylabel("tone-mapped sRGB", fontsize=7)
     axes[1, min(2, len(cols) - 1)].set_ylabel(f"|error| x {ERROR_GAIN:g}\n(white = {1 / ERROR_GAIN:g} sRGB)", fontsize=7)
-    fig.suptitle(f"{label} sample by {ref}'s HDR-FLIP: {it['scene']} slice {it['slice']} (PSNR: tone-mapped sRGB, dB; FLIP: HDR-FLIP)", fontsize=8)
+    fig.suptitle(f"{label} sample by {ref}'s HDR-FLIP: {it['scene']} slice {it['slice']} "
+                 "(PSNR: tone-mapped sRGB, dB; FLIP: HDR-FLIP)", fontsize=8)
     fig.tight_layout()
     path = out / f"grid_{label}.png"
     with atomic_write(path) as tmp:

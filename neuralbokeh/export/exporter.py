@@ -161,18 +161,25 @@ def run_session(sess: ort.InferenceSession, aif: np.ndarray, coc: np.ndarray,
     return sess.run(["defocus"], feeds)[0]
 
 
-def plate_model(model: LensBokeh, size: tuple[int, int] | None = None, max_coc_px: float | None = None) -> LensBokeh:
+def plate_model(model: LensBokeh, size: tuple[int, int] | None = None, max_coc_px: float | None = None,
+                tile_px: int | None = None) -> LensBokeh:
     """The lens network as an export for one plate format sees it: the same weights, a contract
     of the plate's ``size`` ``(H, W)`` px (default: the trained one) whose CoC scale and largest
     CoC are the last band centre of the plan for ``max_coc_px`` (default: the trained maximum;
-    larger renders CoCs beyond it, through the scaled pupil), and N = that plan's bands."""
+    larger renders CoCs beyond it, through the scaled pupil), N = that plan's bands, and tile
+    cores of ``tile_px`` px (default: the trained ones) with the trained overlap."""
     if max_coc_px is not None and not (np.isfinite(max_coc_px) and max_coc_px > 0):
         raise ValueError(f"max_coc_px must be a finite number of px > 0, got {max_coc_px!r}")
+    overlap = model.config.overlap
+    if tile_px is not None and (isinstance(tile_px, bool) or int(tile_px) != tile_px or tile_px < 2 * overlap):
+        raise ValueError(f"tile_px must be a whole number of px >= twice the trained overlap ({2 * overlap} px), "
+                         f"got {tile_px!r}")
     height, width = size or model.contract.size
     plan = model.plan(float(max_coc_px if max_coc_px is not None else model.contract.max_coc_px))
     contract = dataclasses.replace(model.contract, image_height=int(height), image_width=int(width),
                                    coc_scale_px=max(plan.c_plan_px, 1.0), max_coc_px=plan.c_plan_px)
-    plate = LensBokeh(dataclasses.replace(model.config, blocks=plan.blocks), contract)
+    tile = model.config.tile if tile_px is None else int(tile_px)
+    plate = LensBokeh(dataclasses.replace(model.config, blocks=plan.blocks, tile=tile), contract)
     plate.load_state_dict(model.state_dict())
     return plate.eval()
 
@@ -188,6 +195,7 @@ def export_checkpoint(
     size: tuple[int, int] | None = None,
     window: SensorWindow | None = None,
     max_coc_px: float | None = None,
+    tile_px: int | None = None,
     progress: bool = False,
 ) -> dict[str, Any]:
     """Export a checkpoint to ONNX, check it against PyTorch, then move it into place.
@@ -211,102 +219,58 @@ def export_checkpoint(
             the tiles' pupils in the field and is the runtime's default window.
         max_coc_px: lens network: the largest |CoC| (px) the file renders (default: the
             trained maximum; beyond it the learned pupil is scaled).
+        tile_px: lens network: tile cores of this many px (default: the trained size). Each
+            tile takes its pupil at its centre, so larger tiles sample the field more coarsely
+            but run fewer, larger convolutions (fewer graph branches, less overlap).
         progress: a tqdm bar over the build, the load and each parity case (the CLI's).
 
     Returns:
         A report: ``parity`` (max abs error per probe case, against the PyTorch function
         of the exported kernels), ``approximation`` (max abs error of that function against
         the trained model, per case: 0 for ``direct``), ``kernels`` (rank per convolution),
-        ``metadata`` and ``path``.
+        ``band_scales`` (lens network: the grid reduction ``{n: s}`` of each band n >= 1; None
+        otherwise), ``metadata`` and ``path``.
 
     Raises:
         ValueError: bad options, or a parity error above ``tolerance`` (nothing is written).
     """
     tolerance = DEFAULT_TOLERANCE[fp16] if tolerance is None else tolerance
-    newest = onnx.defs.onnx_opset_version()
-    if opset is not None and not 17 <= opset <= newest:  # before the checkpoint is read
-        raise ValueError(f"opset must be from 17 (18 for the lens network) to {newest} (the newest this onnx "
-                         f"{onnx.__version__} knows), got {opset}")
+    _check_opset(opset, None)  # before the checkpoint is read
     model, ckpt = load_model(checkpoint)
     lens = model.config.architecture == "lens"
-    if not lens and (size or window or max_coc_px):
-        raise ValueError("size, window and max_coc_px need the lens network: the paper's network renders its trained "
+    if not lens and (size or window or max_coc_px or tile_px):
+        raise ValueError("size, window, max_coc_px and tile_px need the lens network: the paper's network renders its trained "
                          f"size {model.contract.size[1]}x{model.contract.size[0]} px only")
-    lowest = 18 if lens else 17
-    opset = lowest if opset is None else opset
-    if opset < lowest:
-        raise ValueError(f"opset must be at least {lowest} for the {'lens' if lens else 'paper'} network's operators, got {opset}")
+    opset = _check_opset(opset, lens)
     window = window or SensorWindow()
-    window_t = torch.tensor([[window.left, window.top, window.width, window.height]])
-    if lens:  # per-band kernels rasterised from the learned pupils, direct or on coarser grids
-        model = plate_model(model, size, max_coc_px)
-        kernels = LENS_DEFAULT_KERNELS if kernels is None else kernels
-        spec = parse_lens_kernels(kernels)
-        plan = model.plan(model.contract.max_coc_px)
-        diameters = plan.diameters
-        scales = band_scales(diameters, spec.min_px)
-        factors = {}
-        kernel_report = {f"band{n}": {"k": model.kernel_size(n), "rank": 0, "scale": scales[n]}
-                         for n in range(1, model.config.blocks + 1)}
+    if lens:
+        model = plate_model(model, size, max_coc_px, tile_px)
+        build = _LensExport(model, LENS_DEFAULT_KERNELS if kernels is None else kernels, window)
     else:
-        kernels, plan = DEFAULT_KERNELS if kernels is None else kernels, None
-        factors, kernel_report = plan_factors(model, kernels)
-        weights = {k: v.detach().numpy() for k, v in model.state_dict().items()}
-    cfg = model.config
-    layout = cfg.layout(*model.contract.size)
+        build = _PaperExport(model, DEFAULT_KERNELS if kernels is None else kernels)
     meta = {
         "format": FORMAT, "format_version": FORMAT_VERSION, "package_version": __version__,
-        "model_config": cfg.to_dict(), "contract": model.contract.to_dict(), "layout": list(layout),
+        "model_config": model.config.to_dict(), "contract": model.contract.to_dict(),
+        "layout": list(model.config.layout(*model.contract.size)),
         "sensor_window": window.to_dict(), "trained_max_coc_px": float(ckpt["contract"]["max_coc_px"]),
-        "band_plan": plan.to_dict() if plan else None,
-        "kernels": kernels, "kernel_ranks": {k: v["rank"] for k, v in kernel_report.items()},
+        "band_plan": build.plan.to_dict() if build.plan else None,
+        "kernels": build.kernels, "kernel_ranks": {k: v["rank"] for k, v in build.report.items()},
         "fp16": fp16, "opset": opset, "source_checkpoint": Path(checkpoint).name,
         "trained_steps": ckpt.get("step"),
         "data_split": ({k: ckpt["train_config"]["data"][k] for k in ("test_fraction", "split_seed")}
                        if ckpt.get("train_config") else None),
     }
-    props = {METADATA_KEY: json.dumps(meta, sort_keys=True)}
     probes = probe_inputs(*model.contract.size)
     bar = tqdm(total=2 + len(probes), desc="export: graph", unit="step", disable=not progress)
-    if lens:
-        with torch.no_grad():
-            pupils = model.tile_pupils(layout, *model.contract.size, window_t)[0]
-            band_kernels = {n: reduce_kernel(model.kernels(n, pupils, float(diameters[n])).double(), scales[n]).numpy()
-                            for n in range(1, cfg.blocks + 1)}
-        onnx_model = build_lens_graph(band_kernels, plan, cfg, model.contract, fp16, opset, props, scales, spec.rows)
-    else:
-        onnx_model = build_graph(weights, cfg, model.contract, factors, fp16, opset, props)
+    onnx_model = build.graph(fp16, opset, {METADATA_KEY: json.dumps(meta, sort_keys=True)})
     bar.update()
     bar.set_description("export: onnxruntime load")
     sess = make_session(onnx_model.SerializeToString(), threads)
     bar.update()
-    if lens:
-        approximate = any(s > 1 for s in scales.values())
-
-        def reference(x: torch.Tensor) -> torch.Tensor:
-            return model(x, window_t, scales=scales, plan_coc_px=model.contract.max_coc_px)
-
-        def trained(x: torch.Tensor) -> torch.Tensor:
-            return model(x, window_t, plan_coc_px=model.contract.max_coc_px)
-    else:
-        approximate = bool(factors)
-        reference = lowrank_reference(model, factors) if factors else model
-        trained = model
-    parity, approx = {}, {}
-    with torch.no_grad():
-        for name, (aif, coc) in probes.items():
-            bar.set_description(f"export: parity {name}")
-            got = run_session(sess, aif, coc)
-            x = torch.from_numpy(np.concatenate([aif, coc], axis=1))
-            want = reference(x).numpy()
-            if not np.isfinite(got).all():
-                raise ValueError(f"ONNX output is not finite on the {name!r} probe")
-            parity[name] = float(np.abs(got - want).max())
-            approx[name] = float(np.abs(want - trained(x).numpy()).max()) if approximate else 0.0
-            bar.update()
+    parity, approx = _parity(sess, probes, build, bar)
     bar.close()
     worst = max(parity.values())
-    log.info("parity (max abs, normalised): %s; low-rank approximation: %s", parity, approx)
+    log.info("parity (max abs, normalised): %s; approximation: %s", parity, approx)
     if worst > tolerance:
         raise ValueError(f"ONNX and PyTorch differ by up to {worst:.3g} (> tolerance {tolerance:g}) per case {parity}; not written")
     out = Path(out)
@@ -314,4 +278,85 @@ def export_checkpoint(
     with atomic_write(out) as tmp:
         onnx.save(onnx_model, tmp)
     return {"path": str(out), "parity": parity, "tolerance": tolerance, "approximation": approx,
-            "kernels": kernel_report, "metadata": meta}
+            "kernels": build.report, "band_scales": build.scales, "metadata": meta}
+
+
+def _check_opset(opset: int | None, lens: bool | None) -> int:
+    """``opset``, or the network's lowest (18 lens, 17 paper) when None; ``lens`` None checks the
+    range this onnx knows only (before the checkpoint is read)."""
+    newest = onnx.defs.onnx_opset_version()
+    if opset is not None and not 17 <= opset <= newest:
+        raise ValueError(f"opset must be from 17 (18 for the lens network) to {newest} (the newest this onnx "
+                         f"{onnx.__version__} knows), got {opset}")
+    lowest = 18 if lens else 17
+    if opset is not None and lens is not None and opset < lowest:
+        raise ValueError(f"opset must be at least {lowest} for the {'lens' if lens else 'paper'} network's operators, got {opset}")
+    return lowest if opset is None else opset
+
+
+class _LensExport:
+    """The lens network's side of an export: per-band kernels rasterised from the learned
+    pupils at each tile's field position, direct or binned to coarser grids (``multires``)."""
+
+    def __init__(self, model: LensBokeh, kernels: str, window: SensorWindow) -> None:
+        self.model, self.kernels = model, kernels
+        self.spec = parse_lens_kernels(kernels)
+        self.plan = model.plan(model.contract.max_coc_px)
+        self.scales = band_scales(self.plan.diameters, self.spec.min_px)
+        self.report = {f"band{n}": {"k": model.kernel_size(n), "rank": 0, "scale": self.scales[n]}
+                       for n in range(1, model.config.blocks + 1)}
+        self.window = torch.tensor([[window.left, window.top, window.width, window.height]])
+        self.approximate = any(s > 1 for s in self.scales.values())
+
+    def graph(self, fp16: bool, opset: int, props: dict[str, str]) -> onnx.ModelProto:
+        m, d = self.model, self.plan.diameters
+        with torch.no_grad():
+            pupils = m.tile_pupils(m.config.layout(*m.contract.size), *m.contract.size, self.window)[0]
+            band_kernels = {n: reduce_kernel(m.kernels(n, pupils, float(d[n])).double(), self.scales[n]).numpy()
+                            for n in range(1, m.config.blocks + 1)}
+        return build_lens_graph(band_kernels, self.plan, m.config, m.contract, fp16, opset, props, self.scales,
+                                self.spec.rows)
+
+    def reference(self, x: torch.Tensor) -> torch.Tensor:
+        """The PyTorch function of the exported kernels (coarse grids included)."""
+        return self.model(x, self.window, scales=self.scales, plan_coc_px=self.model.contract.max_coc_px)
+
+    def trained(self, x: torch.Tensor) -> torch.Tensor:
+        return self.model(x, self.window, plan_coc_px=self.model.contract.max_coc_px)
+
+
+class _PaperExport:
+    """The paper network's side of an export: its weights, with separable factors where the
+    ``--kernels`` spec asks for them."""
+
+    plan, scales = None, None  # no CoC bands
+
+    def __init__(self, model: PaperBokeh, kernels: str) -> None:
+        self.model, self.kernels = model, kernels
+        self.factors, self.report = plan_factors(model, kernels)
+        self.approximate = bool(self.factors)
+        self.reference = lowrank_reference(model, self.factors) if self.factors else model
+        self.trained = model
+
+    def graph(self, fp16: bool, opset: int, props: dict[str, str]) -> onnx.ModelProto:
+        weights = {k: v.detach().numpy() for k, v in self.model.state_dict().items()}
+        return build_graph(weights, self.model.config, self.model.contract, self.factors, fp16, opset, props)
+
+
+def _parity(sess: ort.InferenceSession, probes: dict[str, tuple[np.ndarray, np.ndarray]], build: _LensExport | _PaperExport,
+            bar: tqdm) -> tuple[dict[str, float], dict[str, float]]:
+    """Max abs error per probe case of onnxruntime against the PyTorch function of the exported
+    kernels, and of that function against the trained model (0 where it is the model)."""
+    parity, approx = {}, {}
+    with torch.no_grad():
+        for name, (aif, coc) in probes.items():
+            bar.set_description(f"export: parity {name}")
+            got = run_session(sess, aif, coc)
+            if not np.isfinite(got).all():
+                raise ValueError(f"ONNX output is not finite on the {name!r} probe")
+            x = torch.from_numpy(np.concatenate([aif, coc], axis=1))
+            want = build.reference(x).numpy()
+            parity[name] = float(np.abs(got - want).max())
+            approx[name] = float(np.abs(want - build.trained(x).numpy()).max()) if build.approximate else 0.0
+            bar.update()
+    return parity, approx

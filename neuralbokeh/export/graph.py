@@ -36,7 +36,6 @@ from ..core.contract import Contract
 from ..networks.config import TANH_LIMIT, ModelConfig
 
 
-
 class GraphBuilder:
     def __init__(self, count: int = 0) -> None:
         self.initializers: list[onnx.TensorProto] = []

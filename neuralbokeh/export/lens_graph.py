@@ -13,12 +13,13 @@ Per tile (an ONNX ``If`` on ``tile_active``; an inactive tile passes its core th
 in-focus light): decode to linear light, the in-focus band, then per band and side an ``If``
 on ``band_active[tile, n - 1, side]`` (the runtime proves from the frame's CoC map which bands
 a tile's pixels use, :func:`neuralbokeh.core.bands.active_bands` with the plan stored in the
-file; a band that does not run returns an empty tensor, so it costs nothing downstream either): the band's hat gate, a grouped convolution of (colour x gate, gate) by
+file; a band that does not run returns an empty tensor, so it costs nothing downstream
+either): the band's hat gate, a grouped convolution of (colour x gate, gate) by
 the band's kernels (ONNX ``Conv`` correlates: the point-spread functions are stored
 point-reflected), and the near / same-surface / far bucket weights at full resolution.
 
 *Rows* (``rows`` and ``multires``; ``direct`` keeps one depthwise ``Conv``): the convolution is
-computed as row GEMMs plus a ``Col2Im`` shift-sum (:func:`_conv_rows`), the same sums in another
+computed as row GEMMs plus a ``Col2Im`` shift-sum (:func:`conv_rows`), the same sums in another
 order, 1.4-2.8x faster on CPU for k = 5-23.
 
 *Coarser grids* (``scales``, the default export ``multires:10``): a band whose CoC is wide is
@@ -64,7 +65,7 @@ class LensKernels(NamedTuple):
     """How the band convolutions are exported (:func:`parse_lens_kernels`)."""
 
     min_px: float  # the narrowest CoC (coarse px) a band may have on a reduced grid; 0: full resolution
-    rows: bool  # row-GEMM convolutions (:func:`_conv_rows`) instead of one depthwise ``Conv``
+    rows: bool  # row-GEMM convolutions (:func:`conv_rows`) instead of one depthwise ``Conv``
 
 
 def parse_lens_kernels(spec: str) -> LensKernels:
@@ -88,7 +89,7 @@ def parse_lens_kernels(spec: str) -> LensKernels:
     return LensKernels(px, True)
 
 
-class _Nodes:
+class Nodes:
     """A list of nodes with a builder: ``op("Add", a, b)`` returns the output name."""
 
     def __init__(self, b: GraphBuilder, stem: str) -> None:
@@ -107,13 +108,13 @@ def _out(name: str) -> onnx.ValueInfoProto:
     return helper.make_tensor_value_info(name, TensorProto.FLOAT, None)
 
 
-def _branch(g: _Nodes, result: str, name: str) -> onnx.GraphProto:
+def _branch(g: Nodes, result: str, name: str) -> onnx.GraphProto:
     final = g.b.fresh(f"{name}.result")
     g.nodes.append(helper.make_node("Identity", [result], [final], name=final))
     return helper.make_graph(g.nodes, name, [], [_out(final)], g.b.initializers)
 
 
-def _hidden_background(top: _Nodes, x: str, contract: Contract, r: int) -> str:
+def hidden_background_graph(top: Nodes, x: str, contract: Contract, r: int) -> str:
     """``(B, 3, H, W)`` linear estimate of what foregrounds hide, as ``LensBokeh.hidden``:
     occluders by a separable max over ``2r + 1`` px (``r``: the plan's ``fill_radius_px``), then the
     pull-push fill of :func:`neuralbokeh.ops.holes.push_pull_fill` on the zero-padded
@@ -125,7 +126,7 @@ def _hidden_background(top: _Nodes, x: str, contract: Contract, r: int) -> str:
                  top.c("bg.coc_scale", float(contract.coc_scale_px)))
     if r == 0:
         return rgb  # nothing can hide anything: the fill is the AIF itself
-    far = _window_max(top, _window_max(top, coc, r, 3, w), r, 2, h)  # rows, then columns (as ops.holes.occluders)
+    far = window_max(top, window_max(top, coc, r, 3, w), r, 2, h)  # rows, then columns (as ops.holes.occluders)
     hide = top.op("Less", coc, top.op("Sub", far, top.c("bg.jump", JUMP_PX)))
     keep = top.op("Cast", top.op("Not", hide), to=TensorProto.FLOAT)
     # the pyramid of push_pull_fill on the zero-padded 2^L square, with level 0 left unpadded:
@@ -153,7 +154,7 @@ def _hidden_background(top: _Nodes, x: str, contract: Contract, r: int) -> str:
     return top.op("Add", top.op("Mul", keep, rgb), top.op("Mul", top.op("Sub", top.c("bg.one", 1.0), keep), up))
 
 
-def _window_max(g: _Nodes, x: str, r: int, axis: int, size: int) -> str:
+def window_max(g: Nodes, x: str, r: int, axis: int, size: int) -> str:
     """The max of ``x`` over ``[i - r, i + r]`` along ``axis`` (2 or 3, ``size`` long), nothing
     beyond the edges: as ``MaxPool`` with a ``2r + 1`` window and ``r`` of padding, exactly, but
     as ``log2(2r + 1)`` maxima of two shifted ``Slice``s (-inf padded): ``m[i]`` holds the max of
@@ -172,7 +173,7 @@ def _window_max(g: _Nodes, x: str, r: int, axis: int, size: int) -> str:
     return cur
 
 
-def _pull(g: _Nodes, image: str, weight: str, pads: list[int]) -> tuple[str, str]:
+def _pull(g: Nodes, image: str, weight: str, pads: list[int]) -> tuple[str, str]:
     """One pull step of :func:`neuralbokeh.ops.holes.push_pull_fill`: weight-normalised 2x2
     means and their weight (4 x the mean weight, at most 1); ``pads`` (end side) zero-pads."""
     w_small = g.op("AveragePool", weight, kernel_shape=[2, 2], strides=[2, 2], pads=pads, count_include_pad=1)
@@ -181,12 +182,12 @@ def _pull(g: _Nodes, image: str, weight: str, pads: list[int]) -> tuple[str, str
     return c_small, g.op("Min", g.op("Mul", w_small, g.c("bg.four", 4.0)), g.c("bg.one", 1.0))
 
 
-def _upsample2(g: _Nodes, x: str) -> str:
+def _upsample2(g: Nodes, x: str) -> str:
     """x2 bilinear upsampling, half-pixel (``F.interpolate(scale_factor=2, align_corners=False)``)."""
     return g.op("Resize", x, "", g.c("bg.x2", [1.0, 1.0, 2.0, 2.0]), mode="linear", coordinate_transformation_mode="half_pixel")
 
 
-def _linear_rgb(g: _Nodes, window: str, norm: Normalization) -> tuple[str, str]:
+def _linear_rgb(g: Nodes, window: str, norm: Normalization) -> tuple[str, str]:
     """``(normalised RGB, linear RGB)`` of a window ``(B, 4, win, win)``: the exact inverse of
     the normalisation, ``x = s (1 + n) / (1 - n) - o``."""
     one = g.c("one", 1.0)
@@ -196,7 +197,7 @@ def _linear_rgb(g: _Nodes, window: str, norm: Normalization) -> tuple[str, str]:
     return norm_rgb, rgb
 
 
-def _conv_rows(g: _Nodes, feats: str, weights: np.ndarray, size: int, fp16: bool) -> str:
+def conv_rows(g: Nodes, feats: str, weights: np.ndarray, size: int, fp16: bool) -> str:
     """The depthwise correlation of ``feats`` ``(B, C, size, size)`` by ``weights`` ``(C, 1, k, k)``
     ('same' size, zero padding), as ``Conv(group=C, pads=k // 2)`` gives it, computed by rows:
     one grouped ``Conv`` correlates each image row with each of the ``k`` kernel rows (``k``
@@ -221,8 +222,8 @@ def _band(b: GraphBuilder, k: int, n: int, side: int, pos: str, side_mask: str, 
     """Then-branch: band ``n``'s contribution ``(1, B, 3, 6, win, win)``, (near, same, far) x (RGB, coverage),
     its convolution on a grid ``scale`` times coarser when ``scale > 1`` (``kernel`` is then
     the binned one, :func:`~neuralbokeh.networks.lens.reduce_kernel`), by rows
-    (:func:`_conv_rows`) or one depthwise ``Conv``."""
-    g = _Nodes(GraphBuilder(b.count), f"t{k}.n{n}s{side}")
+    (:func:`conv_rows`) or one depthwise ``Conv``."""
+    g = Nodes(GraphBuilder(b.count), f"t{k}.n{n}s{side}")
     one = g.c("one", 1.0)
     hat = g.op("Relu", g.op("Sub", one, g.op("Abs", g.op("Sub", pos, g.c(f"n{n}", float(n))))))
     gate = g.op("Mul", g.op("Mul", hat, src_mask), side_mask)
@@ -234,7 +235,7 @@ def _band(b: GraphBuilder, k: int, n: int, side: int, pos: str, side_mask: str, 
     w = np.concatenate([kernel, kernel])[:, None, ::-1, ::-1]  # (6, 1, k, k), correlation weights
     p = kernel.shape[-1] // 2
     if rows:
-        out = _conv_rows(g, feats, w, -(-win // scale), fp16)
+        out = conv_rows(g, feats, w, -(-win // scale), fp16)
     elif fp16:
         x16 = g.op("Cast", feats, to=TensorProto.FLOAT16)
         conv = g.op("Conv", x16, g.c("w", w, np.float16), group=6, pads=[p, p, p, p])
@@ -263,13 +264,13 @@ def _tile(b: GraphBuilder, k: int, window: str, kernels: Mapping[int, np.ndarray
     from the outer ``window``; band ``n``, side ``s`` runs where ``band_active[k, n - 1, s]``. A
     band that does not run gives an empty ``(0, B, 3, 6, win, win)``, so the sum over the bands
     costs only the bands that ran."""
-    g = _Nodes(GraphBuilder(b.count), f"t{k}")
+    g = Nodes(GraphBuilder(b.count), f"t{k}")
     blocks, diameters = plan.blocks, plan.diameters
     win = src.shape[-1]
     _, rgb = _linear_rgb(g, window, contract.normalization)
     coc_in = g.op("Slice", window, g.c("s3", [3], np.int64), g.c("s4", [4], np.int64), g.c("ax1", [1], np.int64))
     one = g.c("one", 1.0)
-    c = g.op("Mul", coc_in, g.c("c_max", float(contract.coc_scale_px)))
+    c = g.op("Mul", coc_in, g.c("coc_scale_px", float(contract.coc_scale_px)))
     src_mask = g.c("src", src[None, None])
     if blocks == 0:
         g0, pos = src_mask, None
@@ -290,7 +291,7 @@ def _tile(b: GraphBuilder, k: int, window: str, kernels: Mapping[int, np.ndarray
                 used = g.op("Gather", g.op("Gather", flags, g.c(f"n{n}_row", n - 1, np.int64)), g.c(f"side{side}", side, np.int64))
                 then = _band(g.b, k, n, side, pos, mask, src_mask, rgb, c, kernels[n][side], scales.get(n, 1), win,
                              sign * float(diameters[n]), float(cfg.occlusion_margin_px), fp16, rows)
-                skip = _Nodes(GraphBuilder(g.b.count), f"t{k}.n{n}s{side}.skip")
+                skip = Nodes(GraphBuilder(g.b.count), f"t{k}.n{n}s{side}.skip")
                 empty = skip.op("Slice", base, skip.c("s0", [0], np.int64), skip.c("s0", [0], np.int64), skip.c("ax0", [0], np.int64))
                 else_graph = _branch(skip, empty, f"t{k}_band{n}_{side}_skip")
                 g.b.count = max(g.b.count, skip.b.count) + 1
@@ -307,7 +308,7 @@ def _tile(b: GraphBuilder, k: int, window: str, kernels: Mapping[int, np.ndarray
 
 def _passthrough(b: GraphBuilder, k: int, window: str, src: np.ndarray, norm: Normalization) -> onnx.GraphProto:
     """Else-branch: the tile's core as in-focus light (no convolution), ``(1, B 18 win^2)`` as :func:`_tile`."""
-    g = _Nodes(GraphBuilder(b.count), f"t{k}.pass")
+    g = Nodes(GraphBuilder(b.count), f"t{k}.pass")
     norm_rgb, rgb = _linear_rgb(g, window, norm)
     m = g.c("src", src[None, None])
     ones = g.op("Add", g.op("Mul", norm_rgb, g.c("zero", 0.0)), m)  # (B, 3, win, win) of the mask
@@ -331,7 +332,7 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: Mod
             and CoC scale).
         fp16: float16 convolutions. opset: >= 18 (``Col2Im``). metadata: ``metadata_props``.
         scales: ``{n: s}`` band n convolved on a grid s times coarser (default: all 1, direct).
-        rows: the band convolutions as row GEMMs (:func:`_conv_rows`; exact to float
+        rows: the band convolutions as row GEMMs (:func:`conv_rows`; exact to float
             rounding, faster) instead of depthwise ``Conv`` nodes.
     """
     if opset < 18:
@@ -343,7 +344,7 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: Mod
     (hp, wp), win, t, t_o = layout.padded_size, layout.window, layout.core, layout.overlap
     n_t = layout.num_tiles
     b = GraphBuilder()
-    top = _Nodes(b, "g")
+    top = Nodes(b, "g")
     x = top.op("Concat", "aif", "coc", axis=1)
     pad_t, pad_b, pad_l, pad_r = layout.pads(h, w)
     padded = top.op("Pad", x, b.const("pads", [0, 0, pad_t, pad_l, 0, 0, pad_b, pad_r], np.int64), mode="edge")
@@ -361,7 +362,8 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: Mod
     # overlap-add of the windows in one pass: (T, B, 3, 6, win, win) -> (B, 18 win^2, T) -> Col2Im
     stacked = top.op("Concat", *placed, axis=0) if len(placed) > 1 else placed[0]  # (T, B 18 win^2)
     stacked = top.op("Reshape", stacked, b.const("acc_shape", [n_t, -1, 3, 6, win, win], np.int64))
-    cols_ = top.op("Reshape", top.op("Transpose", stacked, perm=[1, 2, 3, 4, 5, 0]), b.const("cols_shape", [0, 18 * win * win, n_t], np.int64))
+    cols_ = top.op("Reshape", top.op("Transpose", stacked, perm=[1, 2, 3, 4, 5, 0]),
+                   b.const("cols_shape", [0, 18 * win * win, n_t], np.int64))
     total = top.op("Col2Im", cols_, b.const("canvas_hw", [hp, wp], np.int64), b.const("block_hw", [win, win], np.int64),
                    strides=[t, t])
     canvas = top.op("Slice", total, b.const("crop_start", [t_o, t_o], np.int64), b.const("crop_end", [t_o + h, t_o + w], np.int64),
@@ -380,7 +382,8 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: Mod
         taken = got if taken is None else top.op("Add", taken, got)
     if cfg.fill == "background":
         hole = top.op("Max", top.op("Sub", one, taken), zero)
-        linear = top.op("Max", top.op("Add", out, top.op("Mul", hole, _hidden_background(top, x, contract, plan.fill_radius_px))), zero)
+        fill = hidden_background_graph(top, x, contract, plan.fill_radius_px)
+        linear = top.op("Max", top.op("Add", out, top.op("Mul", hole, fill)), zero)
     else:
         linear = top.op("Max", top.op("Div", out, top.op("Max", taken, eps)), zero)
     shifted = top.op("Add", linear, b.const("offset", float(contract.normalization.offset)))

@@ -25,7 +25,7 @@ The skeleton of the paper, given what a lens blur is made of:
 3. *C1: the multiplicative CoC gate.* The signed CoC ``c`` (px) of each pixel is split into
    bands by hat functions of ``|c|``: band 0 is ``|c| <= 1`` px (in focus: a point), band
    ``n`` is centred at ``d_n = 1 + n step`` px, a lattice fixed by the training data (``step =
-   (c_max - 1) / N`` for its largest CoC ``c_max`` and N blocks, so ``d_n <= 2n + 1``). A frame
+   (max_coc_px - 1) / N`` for its largest CoC ``max_coc_px`` and N blocks, so ``d_n <= 2n + 1``). A frame
    runs the bands up to the first whose centre reaches its own largest |CoC| (:meth:`LensBokeh.plan`, :mod:`neuralbokeh.core.bands`):
    a frame with a third of the range runs a third of the bands, one beyond the trained range
    runs more, with the pupil scaled to their diameters. Features of band ``n`` = (colour x gate, gate), for each side.
@@ -69,13 +69,13 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from ..core import checks
 from ..core.apertures import Aperture, Disk, Gaussian, aperture_from_dict
 from ..core.bands import BandPlan, lattice_step
-from ..core.checks import check_finite
 from ..core.contract import Contract
+from ..core.tiling import TileLayout
 from ..ops.fftconv import next_fast_len
 from ..ops.holes import hidden_background
-from ..core.tiling import TileLayout
 from ..ops.tiles import tile
 from .config import ModelConfig
 
@@ -91,14 +91,14 @@ def _gate(pos: torch.Tensor, n: int) -> torch.Tensor:
     return (1.0 - (pos - n).abs()).clamp_min(0.0)
 
 
-def band_gates(coc_px: torch.Tensor, c_max: float, blocks: int) -> torch.Tensor:
+def band_gates(coc_px: torch.Tensor, max_coc_px: float, blocks: int) -> torch.Tensor:
     """Hat weights of every band at each pixel: ``(..., N + 1)``, summing to 1, for ``blocks``
-    bands up to ``c_max`` px.
+    bands up to ``max_coc_px`` px.
 
     Band 0 takes ``|c| <= 1`` px whole (a point); between band centres the weight is linear in
     ``|c|`` (:meth:`~neuralbokeh.core.bands.BandPlan.position`).
     """
-    pos = BandPlan(lattice_step(c_max, blocks), blocks, 0).position(coc_px)
+    pos = BandPlan(lattice_step(max_coc_px, blocks), blocks, 0).position(coc_px)
     return torch.stack([_gate(pos, n) for n in range(blocks + 1)], dim=-1)
 
 
@@ -220,6 +220,10 @@ class LensBokeh(nn.Module):
         c_train = max(float(contract.coc_scale_px), 1.0)
         # the band lattice: N bands over the training range (d_N = c_train, d_n <= 2n + 1)
         self.step_px = lattice_step(c_train, cfg.blocks)
+        if self.step_px > 2.0 + 1e-9:  # d_n = 1 + n step would outgrow block n's 2n + 1 px kernel
+            raise ValueError(f"a CoC scale of {c_train:g} px over {cfg.blocks} blocks puts band n at 1 + {self.step_px:.3g} n px, "
+                             f"wider than its 2n + 1 px kernel: use at least {math.ceil((c_train - 1.0) / 2.0)} blocks "
+                             f"(model.blocks = 'auto') or a CoC scale up to {1.0 + 2.0 * cfg.blocks:g} px")
         prior = prior_transmission(_prior_shape(cfg, contract.aperture), cfg.pupil_size)
         logits = np.log(np.maximum(prior, PUPIL_FLOOR))
         # log-transmissions (side [behind, in front], channel, P, P): one lens-wide pupil, plus a
@@ -235,6 +239,11 @@ class LensBokeh(nn.Module):
         if cfg.tiling == "overlap" and cfg.overlap < reach:
             log.warning("tile overlap %d px is below the largest CoC radius (~%d px): light that a tile's blur would "
                         "carry beyond its window is lost (raise model.overlap)", cfg.overlap, reach)
+
+    def parameter_roles(self) -> dict[str, list[nn.Parameter]]:
+        """The parameters by how training scales their learning rate: ``"field"`` (the
+        field-dependent pupil corrections) and ``"other"`` (the lens-wide pupil, channel scales)."""
+        return {"field": [self.pupil_field], "other": [p for p in self.parameters() if p is not self.pupil_field]}
 
     # -- the frame's plan ---------------------------------------------------------------------
     def layout(self, height: int, width: int) -> TileLayout:
@@ -323,7 +332,8 @@ class LensBokeh(nn.Module):
         """
         cfg = self.config
         check_network_input(x)
-        check_finite("model input", x)
+        if checks.DEBUG:
+            checks.check_finite("model input", x)
         b, _, height, width = x.shape
         if window is not None and (window.ndim != 2 or window.shape[1] != 4 or window.shape[0] not in (1, b)):
             raise ValueError(f"window must have shape ({b}, 4) or (1, 4): (left, top, width, height), got {tuple(window.shape)}")

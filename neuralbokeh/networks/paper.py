@@ -41,10 +41,10 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from ..core.checks import check_finite
+from ..core import checks
+from ..core.contract import Contract
 from ..ops.fftconv import fft_convolve2d
 from ..ops.tiles import tile, untile
-from ..core.contract import Contract
 from .config import TANH_LIMIT, ModelConfig
 
 
@@ -109,11 +109,19 @@ class PaperBokeh(nn.Module):
             nn.init.zeros_(self.c2.weight)
             nn.init.zeros_(self.c2.bias)
 
+    def parameter_roles(self) -> dict[str, list[nn.Parameter]]:
+        """The parameters by how training scales their learning rate: ``"kernel"`` (the
+        per-channel k x k kernels, whose fan-in is k^2) and ``"other"``."""
+        kernels = [getattr(block, part).conv.weight for block in self.blocks for part in ("conv_a", "conv_b")]
+        ids = {id(p) for p in kernels}
+        return {"kernel": kernels, "other": [p for p in self.parameters() if id(p) not in ids]}
+
     def forward_tiles(self, x: torch.Tensor) -> torch.Tensor:
         """``(B, 4, H, W)`` -> per-tile outputs ``(B, tiles * 3, win, win)`` before reassembly."""
         cfg = self.config
         self.contract.check_network_input(x)
-        check_finite("model input", x)
+        if checks.DEBUG:
+            checks.check_finite("model input", x)
         n, f = self.layout.num_tiles, cfg.features
         xt = tile(x, self.layout)  # (B, n*4, win, win)
         b, _, win, _ = xt.shape

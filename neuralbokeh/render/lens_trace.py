@@ -38,7 +38,7 @@ import torch.nn.functional as F
 
 from ..core.apertures import ApertureModel
 from ..core.checks import check_at_least, check_finite, check_positive
-from .baselines import check_baseline_inputs, aperture_rays
+from .baselines import aperture_rays, check_baseline_inputs
 
 _REFINE = 3  # narrowing passes of the min/max search
 
@@ -193,7 +193,8 @@ def lens_ray_trace(aif: torch.Tensor, coc: torch.Tensor, aperture: ApertureModel
         raise ValueError(f"layers must be 1 or 2, got {layers}")
     sa = float(spherical_aberration_px)
     pts = aperture_rays(aperture or ApertureModel(), grid)
-    rho = np.minimum(np.hypot(pts[:, 0], pts[:, 1]), 1.0)  # the zone profile ends at the rim: corners of a square pupil take its value there
+    # the zone profile ends at the rim: corners of a square pupil take its value there
+    rho = np.minimum(np.hypot(pts[:, 0], pts[:, 1]), 1.0)
     shift = sa * singlet_zone_profile(rho, index=index, bending=bending) if sa != 0 else np.zeros(len(pts))
     h, w = d["H"], d["W"]
     outs = []

@@ -220,7 +220,8 @@ def _composite(
     """Scatter and composite layers far to near; ``layer_fn(i)`` gives ``(C (3,H,W), A (1,H,W))``.
 
     A layer hides (``"over"``) only the layers more than ``surface_px`` behind it (0: every
-    layer behind it, as for complete layers); the others add up as parts of one surface. ``fill``: ``"normalize"``, ``"background"`` (needs ``background``, ``(3, H, W)``) or
+    layer behind it, as for complete layers); the others add up as parts of one surface.
+    ``fill``: ``"normalize"``, ``"background"`` (needs ``background``, ``(3, H, W)``) or
     ``"none"`` (see the module doc). Only one layer's blurred maps are alive at a time: memory
     does not grow with the layers.
     """

@@ -45,8 +45,17 @@ from tqdm import tqdm
 
 from ..core.checks import check_at_least, check_finite
 from ..core.cli import HelpFormatter, run_cli
-from ..core.io import (Window, image_attributes, image_channels, image_windows, intersect, place, prepare_output,
-                       read_image, write_image)
+from ..core.io import (
+    Window,
+    image_attributes,
+    image_channels,
+    image_windows,
+    intersect,
+    place,
+    prepare_output,
+    read_image,
+    write_image,
+)
 from ..core.optics import SensorWindow
 from .channels import pick_channels, split_source
 from .masks import erode, gaussian_blur
@@ -316,7 +325,7 @@ def composite_frame(model: OnnxBokeh, plate: np.ndarray, render: np.ndarray, dep
     return (blurred[0] + (1.0 - cover) * plate).astype(np.float32)
 
 
-def main(argv: list[str] | None = None) -> int:
+def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m neuralbokeh.runtime.composite", description=__doc__,
                                 formatter_class=HelpFormatter)
     p.add_argument("--model", required=True, help="ONNX model written by export.py")
@@ -354,58 +363,75 @@ def main(argv: list[str] | None = None) -> int:
                    help="onnxruntime's graph optimisation: off loads the model fastest, basic or all may render a "
                         "little faster; auto: off for one frame (a render-farm task), basic for a sequence")
     p.add_argument("-v", "--verbose", action="store_true", help="tracebacks with errors")
-    args = p.parse_args(argv)
+    return p
+
+
+def _plan_frames(args: argparse.Namespace) -> tuple[list[int | None], tuple[np.ndarray, np.ndarray] | None]:
+    """The frames to render and the focus curve, after every check that needs no rendering:
+    outputs writable and not among the inputs, one source of focus."""
+    if args.frames:
+        frames: list[int | None] = list(parse_frames(args.frames))
+        if not _PATTERN.search(args.out):
+            raise ValueError(f"--out {args.out} needs a frame pattern such as %04d when --frames is given")
+    else:
+        frames = [None]
+    inputs = {_frame_path(split_source(a)[0], f).resolve() for a in (args.plate, args.render, args.depth, args.alpha)
+              for f in frames}
+    if args.half and Path(args.out).suffix.lower() != ".exr":
+        raise ValueError(f"--half writes float16 EXR files only, got --out {args.out}")
+    for out in (_frame_path(args.out, frame) for frame in frames):  # before any frame is rendered
+        if out.resolve() in inputs:
+            raise ValueError(f"--out {out} is one of the inputs: it would be overwritten; choose another output")
+        prepare_output(out, args.overwrite)
+    if args.depth_math == "coc" and (args.focus is not None or args.focus_curve):
+        raise ValueError("--depth-math coc takes the CoC from --depth: leave out --focus and --focus-curve")
+    if args.depth_math != "coc" and args.focus is None and not args.focus_curve:
+        raise ValueError("give --focus (m) or --focus-curve, or --depth-math coc with a CoC map as --depth")
+    curve = read_focus_curve(args.focus_curve) if args.focus_curve else None
+    if curve is not None and frames == [None]:
+        raise ValueError("--focus-curve needs --frames")
+    return frames, curve
+
+
+class _Inputs:
+    """The command's inputs per frame; those without a frame pattern are read once per use."""
+
+    def __init__(self, args: argparse.Namespace) -> None:
+        self.args = args
+        self.static: dict[tuple[str, str, Window], np.ndarray] = {}
+
+    def load(self, arg: str, frame: int | None, kind: str, where: Window) -> np.ndarray:
+        key = (arg, kind, where)
+        if not _PATTERN.search(arg) and key in self.static:
+            return self.static[key]
+        img = read_linear(str(_frame_path(arg, frame)), kind, where)
+        if kind == "depth" and self.args.depth_math != "coc":
+            img = depth_to_metres(img, self.args.depth_unit, self.args.depth_math, str(_frame_path(arg, frame)))
+        if not _PATTERN.search(arg):
+            self.static[key] = img
+        return img
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stdout)
     try:
-        if args.frames:
-            frames: list[int | None] = list(parse_frames(args.frames))
-            if not _PATTERN.search(args.out):
-                raise ValueError(f"--out {args.out} needs a frame pattern such as %04d when --frames is given")
-        else:
-            frames = [None]
-        outputs = [_frame_path(args.out, frame) for frame in frames]
-        inputs = {_frame_path(split_source(a)[0], f).resolve() for a in (args.plate, args.render, args.depth, args.alpha)
-                  for f in frames}
-        if args.half and Path(args.out).suffix.lower() != ".exr":
-            raise ValueError(f"--half writes float16 EXR files only, got --out {args.out}")
-        for out in outputs:  # before any frame is rendered
-            if out.resolve() in inputs:
-                raise ValueError(f"--out {out} is one of the inputs: it would be overwritten; choose another output")
-            prepare_output(out, args.overwrite)
-        if args.depth_math == "coc" and (args.focus is not None or args.focus_curve):
-            raise ValueError("--depth-math coc takes the CoC from --depth: leave out --focus and --focus-curve")
-        if args.depth_math != "coc" and args.focus is None and not args.focus_curve:
-            raise ValueError("give --focus (m) or --focus-curve, or --depth-math coc with a CoC map as --depth")
-        curve = read_focus_curve(args.focus_curve) if args.focus_curve else None
-        if curve is not None and frames == [None]:
-            raise ValueError("--focus-curve needs --frames")
+        frames, curve = _plan_frames(args)
         window = SensorWindow(*args.sensor_window) if args.sensor_window else None
         level = args.graph_optimization if args.graph_optimization != "auto" else "off" if len(frames) == 1 else "basic"
         model = OnnxBokeh(args.model, threads=args.threads, skip_in_focus=not args.no_skip, optimization=level)
-        made_by = provenance(args.model)
-        static: dict[tuple[str, str, Window], np.ndarray] = {}  # inputs without a frame pattern, read once per use
-        warned: list[bool] = []  # the depth range is checked on the first frame
-
-        def load(arg: str, frame: int | None, kind: str, where: Window) -> np.ndarray:
-            key = (arg, kind, where)
-            if not _PATTERN.search(arg) and key in static:
-                return static[key]
-            img = read_linear(str(_frame_path(arg, frame)), kind, where)
-            if kind == "depth" and args.depth_math != "coc":
-                img = depth_to_metres(img, args.depth_unit, args.depth_math, str(_frame_path(arg, frame)))
-            if not _PATTERN.search(arg):
-                static[key] = img
-            return img
-
+        made_by, inputs, warned = provenance(args.model), _Inputs(args), False  # the depth range: checked on the first frame
         for frame in tqdm(frames, desc="composite", unit="frame", disable=len(frames) < 2):
             focus_m = None if args.depth_math == "coc" else args.focus if curve is None else focus_at(curve, frame)
             plate_path = Path(split_source(str(_frame_path(args.plate, frame)))[0])
             where, display, frame_window = plate_frame(plate_path, window)
-            depth = load(args.depth, frame, "depth", where)
-            if not warned and focus_m is not None and model.contract.lens is not None:  # the first frame's
-                warned.append(warn_if_implausible(depth, model.contract.lens.focal_length_mm, focus_m, str(args.depth)))
-            comp = composite_frame(model, load(args.plate, frame, "rgb", where), load(args.render, frame, "rgb", where),
-                                   depth, load(args.alpha, frame, "alpha", where), focus_m,
+            depth = inputs.load(args.depth, frame, "depth", where)
+            if not warned and focus_m is not None and model.contract.lens is not None:
+                warn_if_implausible(depth, model.contract.lens.focal_length_mm, focus_m, str(args.depth))
+                warned = True
+            comp = composite_frame(model, inputs.load(args.plate, frame, "rgb", where),
+                                   inputs.load(args.render, frame, "rgb", where), depth,
+                                   inputs.load(args.alpha, frame, "alpha", where), focus_m,
                                    args.erode, args.feather, args.clamp_coc, frame_window, not args.straight)
             out = _frame_path(args.out, frame)
             attributes = {**image_attributes(plate_path, PLATE_ATTRIBUTES), **made_by}
@@ -417,7 +443,6 @@ def main(argv: list[str] | None = None) -> int:
     except (FileNotFoundError, ValueError, OSError) as e:
         raise SystemExit(f"error: {e}")
     return 0
-
 
 if __name__ == "__main__":
     sys.exit(run_cli(main))

@@ -42,8 +42,8 @@ from ..checkpoint import load_checkpoint, save_checkpoint
 from ..core.apertures import ApertureModel, Gaussian
 from ..core.io import write_json
 from ..core.normalization import Normalization
-from ..data.check import require_sound
 from ..core.optics import SensorWindow
+from ..data.check import require_sound
 from ..data.dataset import FocalStackDataset, cut_sides, random_crop_place
 from ..networks import build_model
 from ..render import scatter_defocus
@@ -112,19 +112,23 @@ def loss_weights(cut: torch.Tensor, size: tuple[int, int], margin_px: int) -> to
 def param_groups(model: torch.nn.Module, scaling: str, field_lr_scale: float = 1.0) -> list[dict[str, Any]]:
     """Adam parameter groups, each with an ``lr_scale``: the paper network's per-channel k x k
     kernels at ``1 / k^2`` with ``scaling = "fan_in"`` (see ``TrainSection.lr_kernel_scaling``),
-    the lens network's field-dependent pupil corrections at ``field_lr_scale``, everything else at 1."""
+    the lens network's field-dependent pupil corrections at ``field_lr_scale``, everything else at
+    1; the network declares which is which (``parameter_roles``)."""
     groups: dict[float, list[torch.nn.Parameter]] = {}
-    for name, p in model.named_parameters():
-        scale = 1.0
-        if scaling == "fan_in" and name.endswith("conv.weight") and p.ndim == 4:
-            scale = 1.0 / (p.shape[-1] * p.shape[-2])
-        elif name == "pupil_field":
-            scale = field_lr_scale
-        groups.setdefault(scale, []).append(p)
+    for role, params in model.parameter_roles().items():
+        for p in params:
+            scale = 1.0
+            if role == "kernel" and scaling == "fan_in":
+                scale = 1.0 / (p.shape[-1] * p.shape[-2])
+            elif role == "field":
+                scale = field_lr_scale
+            groups.setdefault(scale, []).append(p)
     return [{"params": ps, "lr_scale": s} for s, ps in sorted(groups.items(), reverse=True)]
 
 
 def _lr_factor(step: int, cfg: TrainConfig) -> float:
+    """The schedule's factor on ``train.lr`` at ``step`` (0-based), a function of the step alone
+    (a time limit does not anneal: measured worse, docs/benchmarks.md)."""
     t = cfg.train
     if step < t.warmup_steps:
         return (step + 1) / t.warmup_steps
@@ -269,13 +273,7 @@ def torch_threads(threads: int) -> Iterator[None]:
         torch.set_num_threads(before)
 
 
-def train(cfg: TrainConfig, *args: Any, **kwargs: Any) -> dict[str, Any]:
-    """Train from a config with ``cfg.train.threads`` threads; see :func:`_train`."""
-    with torch_threads(cfg.train.threads):
-        return _train(cfg, *args, **kwargs)
-
-
-def _train(
+def train(
     cfg: TrainConfig,
     resume: str | os.PathLike | None = None,
     progress: bool = True,
@@ -283,7 +281,8 @@ def _train(
     time_limit_s: float | None = None,
     overwrite: bool = False,
 ) -> dict[str, Any]:
-    """Train from a config; returns a summary (final metrics, checkpoint path, skipped steps).
+    """Train from a config with ``cfg.train.threads`` threads; returns a summary (final metrics,
+    checkpoint path, skipped steps).
 
     The dataset is checked whole first (:func:`~neuralbokeh.data.check.require_sound`). A run
     that dies (an exception, Ctrl-C, too many non-finite steps) writes a checkpoint of its last
@@ -304,12 +303,22 @@ def _train(
             checkpoint from another model config, an ``out_dir`` holding another run.
         RuntimeError: ``max_nonfinite`` non-finite steps in a row.
     """
-    proc = _Process.start()
-    t = cfg.train
-    if t.batch_size % proc.world:
-        raise ValueError(f"train.batch_size ({t.batch_size}) must be divisible by the number of processes ({proc.world})")
-    per_rank = t.batch_size // proc.world
-    out_dir = Path(t.out_dir)
+    with torch_threads(cfg.train.threads):
+        proc = _Process.start()
+        if cfg.train.batch_size % proc.world:
+            raise ValueError(f"train.batch_size ({cfg.train.batch_size}) must be divisible by the number of processes "
+                             f"({proc.world})")
+        _check_out_dir(Path(cfg.train.out_dir), resume, overwrite)
+        require_sound(cfg.data.roots)
+        run = _Run.start(cfg, proc, resume)
+        summary = run.loop(progress, stop_at, time_limit_s)
+        del run  # its DDP wrapper before the process group goes (see _Process.finish)
+        proc.finish()
+        return summary
+
+
+def _check_out_dir(out_dir: Path, resume: str | os.PathLike | None, overwrite: bool) -> None:
+    """Refuse to start over, or to resume into, a folder that holds another run."""
     held = [n for n in ("checkpoint.pt", "log.csv") if (out_dir / n).exists()]
     if held and not resume and not overwrite:
         raise ValueError(f"train.out_dir {out_dir} already holds a run ({', '.join(held)}): continue it with --resume "
@@ -318,113 +327,131 @@ def _train(
         raise ValueError(f"--resume {resume} is another run's checkpoint, and train.out_dir {out_dir} holds a run of its "
                          f"own ({', '.join(held)}): set train.out_dir={Path(resume).parent} to continue that run there, "
                          "choose an empty train.out_dir, or replace this one with --overwrite")
-    require_sound(cfg.data.roots)
 
-    norm = Normalization(cfg.data.normalization_scale)
-    split = {"test_fraction": cfg.data.test_fraction, "split_seed": cfg.data.split_seed, "normalization": norm}
-    train_ds = FocalStackDataset(cfg.data.roots, "train" if cfg.data.test_fraction > 0 else "all", **split)
-    test_ds = FocalStackDataset(cfg.data.roots, "test", **split) if cfg.data.test_fraction > 0 else None
-    contract = train_ds.contract(cfg.data.crop or None)
-    mcfg = cfg.model.resolved(train_ds.max_coc_px)
 
-    torch.manual_seed(t.seed)
-    model = build_model(mcfg, contract).to(proc.device)
-    optimizer = torch.optim.Adam(param_groups(model, t.lr_kernel_scaling, t.field_lr_scale), lr=t.lr)
-    start, skipped = 0, 0
-    if resume:
-        ck = load_checkpoint(resume, map_location=proc.device)
-        if ck["model_config"] != mcfg.to_dict():
-            raise ValueError(f"checkpoint {resume} is for model {ck['model_config']}, this config builds {mcfg.to_dict()}")
-        model.load_state_dict(ck["model_state"])
-        optimizer.load_state_dict(ck["optimizer_state"])
-        start, skipped = ck["step"], ck["skipped_steps"]
-        torch.set_rng_state(ck["rng_state"])
-    net = DistributedDataParallel(model) if proc.distributed else model
+class _Run:
+    """One training run's state: data, network, optimiser, and where the run stands (step,
+    skipped steps)."""
 
-    sampler = DistributedSampler(train_ds, num_replicas=proc.world, rank=proc.rank, shuffle=True, seed=t.seed, drop_last=True)
-    steps_per_epoch = len(sampler) // per_rank
-    if steps_per_epoch < 1:
-        raise ValueError(f"{len(train_ds)} training samples are too few for batch_size {t.batch_size}")
-    samples = Samples(train_ds, cfg.data.cache, cfg.data.crop)
-    margin_px = crop_loss_margin(cfg.data.crop, train_ds.max_coc_px, cfg.data.crop_margin)
-    test_samples = Samples(test_ds, cfg.data.cache) if test_ds else None
+    def __init__(self, cfg: TrainConfig, proc: _Process) -> None:
+        self.cfg, self.proc, self.lead = cfg, proc, proc.rank == 0
+        self.out_dir = Path(cfg.train.out_dir)
+        norm = Normalization(cfg.data.normalization_scale)
+        split = {"test_fraction": cfg.data.test_fraction, "split_seed": cfg.data.split_seed, "normalization": norm}
+        held_out = cfg.data.test_fraction > 0
+        self.train_ds = FocalStackDataset(cfg.data.roots, "train" if held_out else "all", **split)
+        self.test_ds = FocalStackDataset(cfg.data.roots, "test", **split) if held_out else None
+        self.contract = self.train_ds.contract(cfg.data.crop or None)
+        self.mcfg = cfg.model.resolved(self.train_ds.max_coc_px)
+        torch.manual_seed(cfg.train.seed)
+        self.model = build_model(self.mcfg, self.contract).to(proc.device)
+        t = cfg.train
+        self.optimizer = torch.optim.Adam(param_groups(self.model, t.lr_kernel_scaling, t.field_lr_scale), lr=t.lr)
+        self.step, self.skipped, self.t0 = 0, 0, time.perf_counter()
+        self.per_rank = t.batch_size // proc.world
+        self.sampler = DistributedSampler(self.train_ds, num_replicas=proc.world, rank=proc.rank, shuffle=True, seed=t.seed,
+                                          drop_last=True)
+        self.steps_per_epoch = len(self.sampler) // self.per_rank
+        if self.steps_per_epoch < 1:
+            raise ValueError(f"{len(self.train_ds)} training samples are too few for batch_size {t.batch_size}")
+        self.samples = Samples(self.train_ds, cfg.data.cache, cfg.data.crop)
+        self.margin_px = crop_loss_margin(cfg.data.crop, self.train_ds.max_coc_px, cfg.data.crop_margin)
+        self.test_samples = Samples(self.test_ds, cfg.data.cache) if self.test_ds else None
+        self._order: tuple[int, list[int]] = (-1, [])
 
-    lead = proc.rank == 0
-    run_log = _RunLog(out_dir, cfg, append=bool(resume)) if lead else None
-    if lead:
-        log.info("model %s: N=%d over the training range, %d parameters", mcfg.to_dict(), mcfg.blocks,
-                 sum(p.numel() for p in model.parameters()))
+    @classmethod
+    def start(cls, cfg: TrainConfig, proc: _Process, resume: str | os.PathLike | None) -> _Run:
+        """A new run, or one continued from the checkpoint ``resume`` (the same model config)."""
+        run = cls(cfg, proc)
+        if resume:
+            ck = load_checkpoint(resume, map_location=proc.device)
+            if ck["model_config"] != run.mcfg.to_dict():
+                raise ValueError(f"checkpoint {resume} is for model {ck['model_config']}, this config builds "
+                                 f"{run.mcfg.to_dict()}")
+            run.model.load_state_dict(ck["model_state"])
+            run.optimizer.load_state_dict(ck["optimizer_state"])
+            run.step, run.skipped = ck["step"], ck["skipped_steps"]
+            torch.set_rng_state(ck["rng_state"])
+        run.net = DistributedDataParallel(run.model) if proc.distributed else run.model
+        run.run_log = _RunLog(run.out_dir, cfg, append=bool(resume)) if run.lead else None
+        if run.lead:
+            log.info("model %s: N=%d over the training range, %d parameters", run.mcfg.to_dict(), run.mcfg.blocks,
+                     sum(p.numel() for p in run.model.parameters()))
+        return run
 
-    def checkpoint(step: int, metrics: dict) -> Path:
-        return save_checkpoint(out_dir / "checkpoint.pt", {
-            "model_config": mcfg.to_dict(), "contract": contract.to_dict(), "model_state": model.state_dict(),
-            "optimizer_state": optimizer.state_dict(),
-            "step": step, "skipped_steps": skipped, "rng_state": torch.get_rng_state(),
-            "train_config": cfg.to_dict(), "metrics": metrics,
+    def checkpoint(self, metrics: dict) -> Path:
+        return save_checkpoint(self.out_dir / "checkpoint.pt", {
+            "model_config": self.mcfg.to_dict(), "contract": self.contract.to_dict(), "model_state": self.model.state_dict(),
+            "optimizer_state": self.optimizer.state_dict(),
+            "step": self.step, "skipped_steps": self.skipped, "rng_state": torch.get_rng_state(),
+            "train_config": self.cfg.to_dict(), "metrics": metrics,
         })
 
-    baselines, metrics, consecutive, order, order_epoch = None, {}, 0, [], -1
-    t0 = time.perf_counter()
-    bar = tqdm(total=t.steps, initial=start, desc="train", unit="step", disable=not (progress and lead))
-    last = t.steps if stop_at is None else min(t.steps, stop_at)
-    step = start
-    try:
-        while step < last:
-            epoch, pos = divmod(step, steps_per_epoch)
-            if epoch != order_epoch:
-                sampler.set_epoch(epoch)
-                order, order_epoch = list(sampler), epoch
-            x, y, names, window, cut = samples.batch(order[pos * per_rank : (pos + 1) * per_rank], proc.device,
-                                                     seed=t.seed * 1_000_003 + step * 101 + proc.rank)
-            weights = loss_weights(cut, tuple(y.shape[-2:]), margin_px)
-            loss, finite = _step(net, model, optimizer, x, y, window, weights, cfg, step, proc)
-            if not finite:
-                skipped += 1
-                consecutive += 1
-                log.warning("step %d: non-finite loss or gradient, step skipped (scenes %s)", step + 1, names)
-                if consecutive >= t.max_nonfinite:
-                    raise RuntimeError(
-                        f"{consecutive} non-finite steps in a row, the last at step {step + 1} "
-                        f"(batch scenes on rank {proc.rank}: {', '.join(names)}); lower train.lr or check the data"
-                    )
-            else:
-                consecutive = 0
-            done = step = step + 1
-            if time_limit_s is not None and proc.elapsed_over(t0, time_limit_s):
-                last = done
-            row = {"step": done, "loss": loss, "lr": t.lr * _lr_factor(step - 1, cfg), "skipped": skipped}
-            if done % t.eval_every == 0 or done == last:
-                if lead and test_samples:
-                    metrics = held_out_metrics(model, test_samples, proc.device, baselines)
-                    baselines = {k: v for k, v in metrics.items() if not k.startswith("eval_")}
-                    row.update(metrics)
-                    bar.set_postfix(psnr=f"{metrics['eval_psnr']:.2f}", gauss=f"{metrics['gaussian_psnr']:.2f}")
-                proc.barrier()
-            if lead:
-                run_log.write({**row, "elapsed_s": round(time.perf_counter() - t0, 3)})
-                if done % t.checkpoint_every == 0 or done == last:
-                    checkpoint(done, metrics)
-            bar.update()
-    except BaseException:  # an exception, Ctrl-C, the non-finite abort: keep what was learned
-        if lead and step > start:
-            path = checkpoint(step, metrics)
-            log.error("training stopped at step %d; its checkpoint is %s (continue with --resume)", step, path)
-        raise
-    bar.close()
+    def batch(self) -> tuple[torch.Tensor, torch.Tensor, list[str], torch.Tensor, torch.Tensor | None]:
+        """This rank's batch of the current step: ``(x, y, names, window, loss weights)``."""
+        epoch, pos = divmod(self.step, self.steps_per_epoch)
+        if epoch != self._order[0]:
+            self.sampler.set_epoch(epoch)
+            self._order = (epoch, list(self.sampler))
+        t = self.cfg.train
+        x, y, names, window, cut = self.samples.batch(self._order[1][pos * self.per_rank : (pos + 1) * self.per_rank],
+                                                      self.proc.device, seed=t.seed * 1_000_003 + self.step * 101 + self.proc.rank)
+        return x, y, names, window, loss_weights(cut, tuple(y.shape[-2:]), self.margin_px)
 
-    summary = {
-        "checkpoint": str((out_dir / "checkpoint.pt").resolve()), "steps": last, "skipped_steps": skipped,
-        "metrics": metrics, "model": mcfg.to_dict(), "world_size": proc.world,
-        "rank_weight_digests": proc.gather(_digest(model)),
-        "train_samples": len(train_ds), "test_samples": len(test_ds) if test_ds else 0,
-        "seconds": round(time.perf_counter() - t0, 1),
-    }
-    if lead:
-        run_log.close()
-        write_json(out_dir / "summary.json", summary)
-    del net  # before the process group goes (see _Process.finish)
-    proc.finish()
-    return summary
+    def loop(self, progress: bool, stop_at: int | None, time_limit_s: float | None) -> dict[str, Any]:
+        """Train to ``train.steps`` (or ``stop_at``, or the time limit); returns the summary."""
+        t, proc = self.cfg.train, self.proc
+        baselines, metrics, consecutive, start = None, {}, 0, self.step
+        self.t0 = time.perf_counter()
+        bar = tqdm(total=t.steps, initial=start, desc="train", unit="step", disable=not (progress and self.lead))
+        last = t.steps if stop_at is None else min(t.steps, stop_at)
+        try:
+            while self.step < last:
+                x, y, names, window, weights = self.batch()
+                loss, finite = _step(self.net, self.model, self.optimizer, x, y, window, weights, self.cfg, self.step, proc)
+                self.skipped += not finite
+                consecutive = 0 if finite else consecutive + 1
+                if not finite:
+                    log.warning("step %d: non-finite loss or gradient, step skipped (scenes %s)", self.step + 1, names)
+                if consecutive >= t.max_nonfinite:
+                    raise RuntimeError(f"{consecutive} non-finite steps in a row, the last at step {self.step + 1} (batch "
+                                       f"scenes on rank {proc.rank}: {', '.join(names)}); lower train.lr or check the data")
+                row = {"step": self.step + 1, "loss": loss, "lr": t.lr * _lr_factor(self.step, self.cfg), "skipped": self.skipped}
+                self.step += 1
+                if time_limit_s is not None and proc.elapsed(self.t0) > time_limit_s:  # rank 0's clock: all ranks stop alike
+                    last = self.step
+                if self.step % t.eval_every == 0 or self.step == last:
+                    if self.lead and self.test_samples:
+                        metrics = held_out_metrics(self.model, self.test_samples, proc.device, baselines)
+                        baselines = {k: v for k, v in metrics.items() if not k.startswith("eval_")}
+                        row.update(metrics)
+                        bar.set_postfix(psnr=f"{metrics['eval_psnr']:.2f}", gauss=f"{metrics['gaussian_psnr']:.2f}")
+                    proc.barrier()
+                if self.lead:
+                    self.run_log.write({**row, "elapsed_s": round(time.perf_counter() - self.t0, 3)})
+                    if self.step % t.checkpoint_every == 0 or self.step == last:
+                        self.checkpoint(metrics)
+                bar.update()
+        except BaseException:  # an exception, Ctrl-C, the non-finite abort: keep what was learned
+            if self.lead and self.step > start:
+                path = self.checkpoint(metrics)
+                log.error("training stopped at step %d; its checkpoint is %s (continue with --resume)", self.step, path)
+            raise
+        bar.close()
+        return self.summary(metrics)
+
+    def summary(self, metrics: dict) -> dict[str, Any]:
+        summary = {
+            "checkpoint": str((self.out_dir / "checkpoint.pt").resolve()), "steps": self.step, "skipped_steps": self.skipped,
+            "metrics": metrics, "model": self.mcfg.to_dict(), "world_size": self.proc.world,
+            "rank_weight_digests": self.proc.gather(_digest(self.model)),
+            "train_samples": len(self.train_ds), "test_samples": len(self.test_ds) if self.test_ds else 0,
+            "seconds": round(time.perf_counter() - self.t0, 1),
+        }
+        if self.lead:
+            self.run_log.close()
+            write_json(self.out_dir / "summary.json", summary)
+        return summary
 
 
 def _step(net: torch.nn.Module, model: torch.nn.Module, optimizer: torch.optim.Optimizer, x: torch.Tensor, y: torch.Tensor,
@@ -477,12 +504,12 @@ class _Process:
         if self.distributed:
             dist.barrier()
 
-    def elapsed_over(self, t0: float, limit_s: float) -> bool:
-        """Whether rank 0 has run longer than ``limit_s`` (all ranks must agree on when to stop)."""
+    def elapsed(self, t0: float) -> float:
+        """Rank 0's seconds since ``t0`` (all ranks must agree on when to stop and on the rate)."""
         elapsed = torch.tensor([time.perf_counter() - t0], dtype=torch.float64)
         if self.distributed:
             dist.broadcast(elapsed, 0)
-        return float(elapsed) > limit_s
+        return float(elapsed)
 
     def gather(self, value: Any) -> list[Any]:
         """``value`` of every rank, in rank order."""
