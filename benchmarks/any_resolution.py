@@ -2,6 +2,7 @@
 
     python benchmarks/any_resolution.py [--size 1920 1080] [--scenes 16] [--minutes 30] [--crop 256]
         [--f-number 13] [--data data/any_res] [--out runs/any_res] [--steps N] [--crop-margin auto|PX]
+        [section.key=value ...]
 
 Makes (once) ``--scenes`` synthetic scenes x 4 slices at ``--size`` (7-blade aperture, cat-eye
 0.6; f-number chosen so that the largest |CoC| is >= 40 px at 1080p), 25 % of the scenes held
@@ -102,6 +103,8 @@ def main() -> None:
     p.add_argument("--skip-training", action="store_true", help="score the checkpoint already in --out")
     p.add_argument("--cache", action="store_true",
                    help="keep the training scenes in memory (RSS grows with the data; the same crops as reading them)")
+    p.add_argument("overrides", nargs="*", help="more training settings, section.key=value (train.py's), e.g. "
+                   "train.field_lr_scale=1.0")
     args = p.parse_args()
     torch.set_num_threads(2)
     t0 = time.perf_counter()
@@ -114,7 +117,7 @@ def main() -> None:
                  "model.tile=128", "model.overlap=32",
                  f"train.steps={args.steps or 1000000}", "train.lr_schedule='constant'", "train.eval_every=1000000",
                  "data.crop_margin=" + ("'auto'" if args.crop_margin == "auto" else str(int(args.crop_margin))),
-                 "train.checkpoint_every=100", "train.threads=2", f"train.out_dir='{args.out}'"]
+                 "train.checkpoint_every=100", "train.threads=2", f"train.out_dir='{args.out}'", *args.overrides]
     if not args.skip_training:
         cmd = [sys.executable, str(ROOT / "train.py"), str(ROOT / "configs" / "quickstart.toml"), *overrides,
                *([] if args.steps else ["--time-limit", str(args.minutes)]), "--overwrite"]

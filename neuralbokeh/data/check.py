@@ -76,13 +76,7 @@ def check_scene(folder: str | os.PathLike, coc_tolerance: tuple[float, float] = 
             problems.append(f"{folder / meta['files']['depth']}: depth must be > 0 m (+inf allowed), got "
                             f"{depth[bad].flat[0]} at {_first_bad(bad)}")
             depth = None
-    try:
-        lens = ThinLens.from_dict(meta["lens"])
-        window = SensorWindow.from_dict(meta.get("sensor_window"))
-    except (KeyError, TypeError, ValueError) as e:
-        problems.append(f"{folder / 'scene.json'}: bad lens {meta['lens']!r} or sensor window "
-                        f"{meta.get('sensor_window')!r} ({e})")
-        lens = window = None
+    lens, window = _scene_lens(folder, meta, problems)
     largest = 0.0
     rtol, atol = coc_tolerance
     for k, sl in enumerate(meta["slices"]):
@@ -102,6 +96,16 @@ def check_scene(folder: str | os.PathLike, coc_tolerance: tuple[float, float] = 
         problems.append(f"{folder / 'scene.json'}: max_abs_coc_px {recorded:.4g} is below the largest |CoC| of "
                         f"its files, {largest:.4g} px")
     return problems
+
+
+def _scene_lens(folder: Path, meta: dict, problems: list[str]) -> tuple[ThinLens | None, SensorWindow | None]:
+    """The scene's lens and sensor window, or ``(None, None)`` with a problem added."""
+    try:
+        return ThinLens.from_dict(meta["lens"]), SensorWindow.from_dict(meta.get("sensor_window"))
+    except (KeyError, TypeError, ValueError) as e:
+        problems.append(f"{folder / 'scene.json'}: bad lens {meta['lens']!r} or sensor window "
+                        f"{meta.get('sensor_window')!r} ({e})")
+        return None, None
 
 
 def _coc_problems(folder: Path, k: int, sl: dict, coc: np.ndarray, depth: np.ndarray, lens: ThinLens,

@@ -317,6 +317,30 @@ def _passthrough(b: GraphBuilder, k: int, window: str, src: np.ndarray, norm: No
     return _branch(g, g.op("Reshape", parts, g.c("flat", [1, -1], np.int64)), f"t{k}_pass")
 
 
+def _composite_buckets(top: Nodes, canvas: str, x: str, cfg: ModelConfig, contract: Contract, plan: BandPlan) -> str:
+    """The reassembled light ``(B, 18, H, W)`` (near / same / far buckets of colour and cover)
+    composited front to back, and what they leave uncovered filled: linear RGB ``(B, 3, H, W)``
+    (``LensBokeh.composite``)."""
+    b = top.b
+    one, zero, eps = b.const("one", 1.0), b.const("zero", 0.0), b.const("eps", _EPS)
+    buckets = [top.op("Slice", canvas, b.const(f"b{q}c0", [6 * q], np.int64), b.const(f"b{q}c2", [6 * q + 6], np.int64),
+                      b.const("ax1", [1], np.int64)) for q in range(3)]
+    out = taken = None
+    for q in range(3):
+        color = top.op("Slice", buckets[q], b.const("c0", [0], np.int64), b.const("c3", [3], np.int64), b.const("ax1", [1], np.int64))
+        cover = top.op("Max", top.op("Slice", buckets[q], b.const("c3", [3], np.int64), b.const("c6", [6], np.int64), "ax1"), zero)
+        room = one if taken is None else top.op("Max", top.op("Sub", one, taken), zero)
+        frac = top.op("Min", one, top.op("Div", room, top.op("Max", cover, eps)))
+        lit, got = top.op("Mul", color, frac), top.op("Mul", cover, frac)
+        out = lit if out is None else top.op("Add", out, lit)
+        taken = got if taken is None else top.op("Add", taken, got)
+    if cfg.fill == "background":
+        hole = top.op("Max", top.op("Sub", one, taken), zero)
+        fill = hidden_background_graph(top, x, contract, plan.fill_radius_px)
+        return top.op("Max", top.op("Add", out, top.op("Mul", hole, fill)), zero)
+    return top.op("Max", top.op("Div", out, top.op("Max", taken, eps)), zero)
+
+
 def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: ModelConfig, contract: Contract,
                      fp16: bool = False, opset: int = 18, metadata: Mapping[str, str] | None = None,
                      scales: Mapping[int, int] | None = None, rows: bool = False) -> onnx.ModelProto:
@@ -368,24 +392,7 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: Mod
                    strides=[t, t])
     canvas = top.op("Slice", total, b.const("crop_start", [t_o, t_o], np.int64), b.const("crop_end", [t_o + h, t_o + w], np.int64),
                     "axes_hw")
-    one, zero, eps = b.const("one", 1.0), b.const("zero", 0.0), b.const("eps", _EPS)
-    buckets = [top.op("Slice", canvas, b.const(f"b{q}c0", [6 * q], np.int64), b.const(f"b{q}c2", [6 * q + 6], np.int64),
-                      b.const("ax1", [1], np.int64)) for q in range(3)]
-    out = taken = None
-    for q in range(3):
-        color = top.op("Slice", buckets[q], b.const("c0", [0], np.int64), b.const("c3", [3], np.int64), b.const("ax1", [1], np.int64))
-        cover = top.op("Max", top.op("Slice", buckets[q], b.const("c3", [3], np.int64), b.const("c6", [6], np.int64), "ax1"), zero)
-        room = one if taken is None else top.op("Max", top.op("Sub", one, taken), zero)
-        frac = top.op("Min", one, top.op("Div", room, top.op("Max", cover, eps)))
-        lit, got = top.op("Mul", color, frac), top.op("Mul", cover, frac)
-        out = lit if out is None else top.op("Add", out, lit)
-        taken = got if taken is None else top.op("Add", taken, got)
-    if cfg.fill == "background":
-        hole = top.op("Max", top.op("Sub", one, taken), zero)
-        fill = hidden_background_graph(top, x, contract, plan.fill_radius_px)
-        linear = top.op("Max", top.op("Add", out, top.op("Mul", hole, fill)), zero)
-    else:
-        linear = top.op("Max", top.op("Div", out, top.op("Max", taken, eps)), zero)
+    linear = _composite_buckets(top, canvas, x, cfg, contract, plan)
     shifted = top.op("Add", linear, b.const("offset", float(contract.normalization.offset)))
     scale = b.const("scale", float(contract.normalization.scale))
     top.nodes.append(helper.make_node("Div", [top.op("Sub", shifted, scale), top.op("Add", shifted, scale)], ["defocus"],

@@ -187,6 +187,21 @@ def _scatter(feats: torch.Tensor, kern: torch.Tensor, which: torch.Tensor, s: in
     return out
 
 
+def _in_focus_light(rgb: torch.Tensor, pos: torch.Tensor, src: torch.Tensor, active: torch.Tensor) -> torch.Tensor:
+    """The accumulators ``(B, T, 3, 6, win, win)`` before any band is scattered: band 0 (in
+    focus, a point) lands where it is, in the receiver's own bucket; an inactive tile's whole
+    core passes as in-focus light. ``rgb`` ``(B, T, 3, win, win)`` linear, ``pos`` the band
+    positions ``(B, T, win, win)``, ``src`` the cores ``(1, T, 1, win, win)``, ``active`` ``(T,)``."""
+    g0 = _gate(pos, 0).unsqueeze(2) * src  # (B, T, 1, win, win)
+    same = torch.cat([rgb * g0, g0.expand(-1, -1, 3, -1, -1)], dim=2)
+    if not bool(active.all()):
+        keep = (~active).view(1, -1, 1, 1, 1).to(rgb.dtype)
+        passthrough = torch.cat([rgb * src, src.expand(rgb.shape[0], -1, 3, -1, -1)], dim=2)
+        same = keep * passthrough + (1.0 - keep) * same
+    zeros = torch.zeros_like(same)
+    return torch.stack([zeros, same, zeros], dim=2)
+
+
 def field_positions(layout: TileLayout, height: int, width: int, window: torch.Tensor) -> torch.Tensor:
     """The sensor position of each tile's core centre, ``(B, tiles, 2)`` as ``(x, y)`` in [-1, 1]
     (the whole sensor's left/top edge at -1), for images of ``height x width`` px lying on the
@@ -349,15 +364,7 @@ class LensBokeh(nn.Module):
         pos = plan.position(coc)  # continuous band index
         src = self.source_masks(layout, x.device, x.dtype)[None]  # (1, T, 1, win, win)
         active = torch.ones(n_t, dtype=torch.bool, device=x.device) if tile_active is None else tile_active.to(x.device)
-        # band 0 (in focus): a point, lands where it is, in the receiver's own bucket
-        g0 = _gate(pos, 0).unsqueeze(2) * src  # (B, T, 1, win, win)
-        same = torch.cat([rgb * g0, g0.expand(-1, -1, 3, -1, -1)], dim=2)
-        if not bool(active.all()):  # inactive tiles: their whole core as in-focus light
-            keep = (~active).view(1, n_t, 1, 1, 1).to(x.dtype)
-            passthrough = torch.cat([rgb * src, src.expand(b, -1, 3, -1, -1)], dim=2)
-            same = keep * passthrough + (1.0 - keep) * same
-        zeros = torch.zeros_like(same)
-        acc = torch.stack([zeros, same, zeros], dim=2).view(b * n_t, 3, 6, win, win)
+        acc = _in_focus_light(rgb, pos, src, active).view(b * n_t, 3, 6, win, win)
         self.last_convolutions = 0  # (image, tile, band, side) scatters computed by the last call
         if blocks == 0:
             return acc.view(b, n_t, 3, 6, win, win)

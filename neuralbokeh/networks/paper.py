@@ -137,9 +137,11 @@ class PaperBokeh(nn.Module):
             out = (r + t) / (1.0 + r * t)  # = tanh(atanh(r) + d)
         return out
 
-    def forward(self, x: torch.Tensor, return_tiles: bool = False) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, window: torch.Tensor | None = None, return_tiles: bool = False) -> torch.Tensor:
         """``(B, 4, H, W)`` -> ``(B, 3, H, W)`` normalised defocused RGB (or the un-blended
-        tiles ``(B, tiles * 3, win, win)`` with ``return_tiles``, for the per-tile loss)."""
+        tiles ``(B, tiles * 3, win, win)`` with ``return_tiles``, for the per-tile loss).
+        ``window`` (the images' place on the sensor) is accepted and ignored: the paper's network
+        renders its trained frame only and knows nothing of the sensor."""
         tiles = self.forward_tiles(x)
         return tiles if return_tiles else untile(tiles, self.layout, *self.contract.size)
 

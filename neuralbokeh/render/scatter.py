@@ -225,12 +225,7 @@ def _composite(
     ``"none"`` (see the module doc). Only one layer's blurred maps are alive at a time: memory
     does not grow with the layers.
     """
-    if fill not in FILL_MODES or (fill == "background" and background is None):
-        raise ValueError(f"fill must be one of {FILL_MODES} (background with an image), got {fill!r}")
-    if field_grid is not None and field_grid < 2:
-        raise ValueError(f"field_grid must be >= 2 (or None for automatic), got {field_grid}")
-    if chunk < 1:
-        raise ValueError(f"chunk must be >= 1, got {chunk}")
+    _check_composite(fill, background, field_grid, chunk)
     h, w = shape
     n_a = 3 if aperture.chromatic else 1
     max_coc = max([abs(c) for c in cocs] + [0.0])
@@ -271,8 +266,23 @@ def _composite(
     for _, wc, wa in window:  # the nearest surface: side by side, nothing in front of it
         out_c, out_a = out_c + wc, out_a + wa
     log.debug("scatter: %d layers, %d convolutions, grid %d, kernel pad %d px", len(cocs), n_conv, grid, pad)
+    return _fill(out_c, out_a, fill, background)
+
+
+def _check_composite(fill: str, background: torch.Tensor | None, field_grid: int | None, chunk: int) -> None:
+    if fill not in FILL_MODES or (fill == "background" and background is None):
+        raise ValueError(f"fill must be one of {FILL_MODES} (background with an image), got {fill!r}")
+    if field_grid is not None and field_grid < 2:
+        raise ValueError(f"field_grid must be >= 2 (or None for automatic), got {field_grid}")
+    if chunk < 1:
+        raise ValueError(f"chunk must be >= 1, got {chunk}")
+
+
+def _fill(out_c: torch.Tensor, out_a: torch.Tensor, fill: str, background: torch.Tensor | None) -> torch.Tensor:
+    """Composited light ``(3, H, W)`` and coverage ``(n_a, H, W)`` -> the image, where the
+    coverage falls short divided by it (``"normalize"``), filled from ``background`` or left dark."""
     if fill == "normalize":
-        cover = out_a.expand(3, h, w)
+        cover = out_a.expand_as(out_c)
         return torch.where(cover > _EPS_COVERAGE, out_c / cover.clamp_min(_EPS_COVERAGE), out_c)
     out_c = out_c / out_a.clamp_min(1.0)  # parts of one surface side by side may overlap a little
     if fill == "background":

@@ -58,10 +58,9 @@ CSV_FIELDS = [
 
 
 def run_model(model: torch.nn.Module, x: torch.Tensor, window: torch.Tensor | None, **kwargs: Any) -> torch.Tensor:
-    """``model(x)``, with each image's sensor ``window`` ``(B, 4)`` for the lens network (the
-    paper's network has no notion of where on the sensor it is)."""
-    inner = model.module if isinstance(model, DistributedDataParallel) else model
-    return model(x, window, **kwargs) if inner.config.architecture == "lens" else model(x, **kwargs)
+    """``model(x, window)`` with each image's sensor ``window`` ``(B, 4)`` (the
+    :class:`~neuralbokeh.networks.BokehNetwork` call)."""
+    return model(x, window, **kwargs)
 
 
 def compute_loss(model: torch.nn.Module, x: torch.Tensor, y: torch.Tensor, kind: str,
