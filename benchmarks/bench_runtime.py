@@ -248,6 +248,9 @@ def main() -> None:
     p.add_argument("--size", type=int, nargs=2, default=(W, H), metavar=("W", "H"), help="the frame with --model")
     p.add_argument("--tiles", type=int, nargs="*", default=[], metavar="PX",
                    help="with --model: also its default export with tile cores of each PX px (export.py --tile)")
+    p.add_argument("--tiles-only", action="store_true",
+                   help="with --model and --tiles: leave out the exports with the trained tiles (at 3840x2160 their "
+                        "parity check needs about 26 GB)")
     p.add_argument("--worker", help=argparse.SUPPRESS)
     p.add_argument("--frame", type=Path, help=argparse.SUPPRESS)
     p.add_argument("--out", type=Path, help=argparse.SUPPRESS)
@@ -343,12 +346,15 @@ def model_speed(args: argparse.Namespace) -> None:
 
     trained_max = float(load_checkpoint(args.model)["contract"]["max_coc_px"])
     beyond = max_coc * 1.001 if max_coc > trained_max else None  # scaled pupil beyond the trained range
-    paths = make_model(args.out_dir, args.reuse, ("default", "rows"), checkpoint=args.model, size=(height, width),
+    if args.tiles_only and not args.tiles:
+        raise SystemExit("error: --tiles-only needs --tiles PX ...")
+    trained_tiles = () if args.tiles_only else ("default", "rows")
+    paths = make_model(args.out_dir, args.reuse, trained_tiles, checkpoint=args.model, size=(height, width),
                        max_coc_px=beyond, tag=f"model_{width}x{height}_")
     rows = [(f"model, {e} export{', ' + f if f != 'full' else ''}{', 1 thread' if t == 1 else ''}", f"onnx:{paths[e]}", f,
              t or args.threads) for e, f, t in (("default", "full", 0), ("default", "full", 1), ("default", "third", 0),
                                                 ("default", "half_in_focus", 0), ("rows", "full", 0), ("rows", "third", 0),
-                                                ("rows", "half_in_focus", 0))]
+                                                ("rows", "half_in_focus", 0)) if e in trained_tiles]
     for tile in args.tiles:  # the same model with larger tiles: fewer, larger convolutions
         big = make_model(args.out_dir, args.reuse, ("default",), checkpoint=args.model, size=(height, width),
                          max_coc_px=beyond, tag=f"model_{width}x{height}_tile{tile}_", tile_px=tile)["default"]
@@ -361,9 +367,9 @@ def model_speed(args: argparse.Namespace) -> None:
         rows += [(f"prior, default export{', ' + f if f != 'full' else ''}", f"onnx:{prior}", f, args.threads)
                  for f in ("full", "third", "half_in_focus")]
     results = _run_rows(rows, frames, args)
-    _table(results, truth, "model, rows export")
+    _table(results, truth, "model, rows export" if trained_tiles else f"model, default export, tiles {args.tiles[0]}")
     ms = {k: v["ms"] for k, v in results.items()}
-    for e in ("default", "rows", *(f"default export, tiles {t}" for t in args.tiles)):
+    for e in (*trained_tiles, *(f"default export, tiles {t}" for t in args.tiles)):
         name = f"model, {e}" if "tiles" in e else f"model, {e} export"
         full = ms[name]
         print(f"{name}: {full:.0f} ms per frame, peak RSS {results[name]['rss_mb'] / 1024:.2f} GB; "
