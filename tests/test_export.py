@@ -275,8 +275,22 @@ def test_an_export_may_choose_its_tiles_and_only_the_field_sampling_changes(busy
     assert report["metadata"]["layout"][:2] == [1, 2]  # 32 x 40 px: one row of two 32 px cores
     assert np.abs(out["flat", None] - out["flat", 32]).max() < 1e-5
     assert np.abs(out["busy", None] - out["busy", 32]).max() > 1e-3
-    with pytest.raises(ValueError, match="tile_px must be a whole number of px >= twice the trained overlap"):
+    with pytest.raises(ValueError, match=r"tile_px must be a whole number of px >= twice the overlap \(8 px\)"):
         export_checkpoint(busy_checkpoint, tmp_path / "x.onnx", tile_px=model.config.overlap)
+
+
+def test_a_plate_beyond_the_trained_coc_widens_the_overlap_by_the_extra_radius(busy_checkpoint, tmp_path):
+    from neuralbokeh.networks.lens import overlap_for
+
+    model, ckpt = load_model(busy_checkpoint)
+    trained = ckpt["contract"]["max_coc_px"]
+    same = export_checkpoint(busy_checkpoint, tmp_path / "same.onnx", kernels="direct", threads=1)
+    wide = export_checkpoint(busy_checkpoint, tmp_path / "wide.onnx", kernels="direct", threads=1, max_coc_px=2 * trained)
+    assert same["metadata"]["model_config"]["overlap"] == model.config.overlap  # the trained range: the trained tiles
+    c_plan = wide["metadata"]["contract"]["max_coc_px"]
+    extra = overlap_for(c_plan) - overlap_for(model.contract.coc_scale_px)
+    assert extra > 0 and wide["metadata"]["model_config"]["overlap"] == model.config.overlap + extra
+    assert max(wide["parity"].values()) <= 1e-4
 
 
 def test_files_of_earlier_formats_are_refused_in_one_line(busy_checkpoint, busy_onnx, tmp_path):

@@ -21,7 +21,7 @@ from ..checkpoint import load_model
 from ..core.io import atomic_write
 from ..core.normalization import Normalization
 from ..core.optics import SensorWindow
-from ..networks.lens import LensBokeh, band_scales, reduce_kernel
+from ..networks.lens import LensBokeh, band_scales, overlap_for, reduce_kernel
 from ..networks.paper import PaperBokeh
 from ..runtime.onnx_model import FORMAT, FORMAT_VERSION, METADATA_KEY, make_session
 from .graph import build_graph
@@ -167,19 +167,23 @@ def plate_model(model: LensBokeh, size: tuple[int, int] | None = None, max_coc_p
     of the plate's ``size`` ``(H, W)`` px (default: the trained one) whose CoC scale and largest
     CoC are the last band centre of the plan for ``max_coc_px`` (default: the trained maximum;
     larger renders CoCs beyond it, through the scaled pupil), N = that plan's bands, and tile
-    cores of ``tile_px`` px (default: the trained ones) with the trained overlap."""
+    cores of ``tile_px`` px (default: the trained ones) with the trained overlap, widened by what
+    a CoC beyond the trained range adds to the blur's radius
+    (:func:`~neuralbokeh.networks.lens.overlap_for`)."""
     if max_coc_px is not None and not (np.isfinite(max_coc_px) and max_coc_px > 0):
         raise ValueError(f"max_coc_px must be a finite number of px > 0, got {max_coc_px!r}")
-    overlap = model.config.overlap
-    if tile_px is not None and (isinstance(tile_px, bool) or int(tile_px) != tile_px or tile_px < 2 * overlap):
-        raise ValueError(f"tile_px must be a whole number of px >= twice the trained overlap ({2 * overlap} px), "
-                         f"got {tile_px!r}")
     height, width = size or model.contract.size
     plan = model.plan(float(max_coc_px if max_coc_px is not None else model.contract.max_coc_px))
+    # CoCs beyond the trained range reach further: widen the overlap by what they add to the radius
+    c_train = max(float(model.contract.coc_scale_px), 1.0)
+    beyond = overlap_for(plan.c_plan_px) - overlap_for(c_train) if plan.c_plan_px > c_train * (1 + 1e-6) else 0
+    overlap = model.config.overlap + (max(beyond, 0) if model.config.tiling == "overlap" else 0)
+    if tile_px is not None and (isinstance(tile_px, bool) or int(tile_px) != tile_px or tile_px < 2 * overlap):
+        raise ValueError(f"tile_px must be a whole number of px >= twice the overlap ({2 * overlap} px), got {tile_px!r}")
     contract = dataclasses.replace(model.contract, image_height=int(height), image_width=int(width),
                                    coc_scale_px=max(plan.c_plan_px, 1.0), max_coc_px=plan.c_plan_px)
-    tile = model.config.tile if tile_px is None else int(tile_px)
-    plate = LensBokeh(dataclasses.replace(model.config, blocks=plan.blocks, tile=tile), contract)
+    tile = max(model.config.tile, 2 * overlap) if tile_px is None else int(tile_px)
+    plate = LensBokeh(dataclasses.replace(model.config, blocks=plan.blocks, tile=tile, overlap=overlap), contract)
     plate.load_state_dict(model.state_dict())
     return plate.eval()
 

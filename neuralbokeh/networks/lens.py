@@ -202,6 +202,12 @@ def _in_focus_light(rgb: torch.Tensor, pos: torch.Tensor, src: torch.Tensor, act
     return torch.stack([zeros, same, zeros], dim=2)
 
 
+def overlap_for(max_coc_px: float) -> int:
+    """The tile overlap (px) that holds the blur of a ``max_coc_px`` CoC: its radius, with 10 %
+    of room for a learned channel scale."""
+    return math.ceil(0.5 * max_coc_px * 1.1)
+
+
 def field_positions(layout: TileLayout, height: int, width: int, window: torch.Tensor) -> torch.Tensor:
     """The sensor position of each tile's core centre, ``(B, tiles, 2)`` as ``(x, y)`` in [-1, 1]
     (the whole sensor's left/top edge at -1), for images of ``height x width`` px lying on the
@@ -250,7 +256,7 @@ class LensBokeh(nn.Module):
         self.pupil_field = nn.Parameter(torch.zeros(g, g, 2, 3, cfg.pupil_size, cfg.pupil_size))
         self.log_channel_scale = nn.Parameter(torch.zeros(3))
         self._masks: dict[tuple[int, ...], torch.Tensor] = {}
-        reach = math.ceil(0.5 * c_train * 1.1)  # the largest trained CoC radius, with room for a learned channel scale
+        reach = overlap_for(c_train)
         if cfg.tiling == "overlap" and cfg.overlap < reach:
             log.warning("tile overlap %d px is below the largest CoC radius (~%d px): light that a tile's blur would "
                         "carry beyond its window is lost (raise model.overlap)", cfg.overlap, reach)
