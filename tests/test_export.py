@@ -259,7 +259,9 @@ def test_an_export_may_choose_its_tiles_and_only_the_field_sampling_changes(busy
     tiles renders what the trained tiles render; with a field-dependent pupil it samples the field
     at fewer places and differs, while matching its own PyTorch model (the export's parity)."""
     data = load_checkpoint(busy_checkpoint)
-    flat = dict(data, model_state={k: (torch.zeros_like(v) if k == "pupil_field" else v) for k, v in data["model_state"].items()})
+    # one pupil everywhere: no field corrections, the cat-eye's circle left where it is on the axis
+    still = {"pupil_field": lambda v: torch.zeros_like(v), "vignette": lambda v: torch.cat([torch.zeros(2), v[2:]])}
+    flat = dict(data, model_state={k: still.get(k, lambda v: v)(v) for k, v in data["model_state"].items()})
     save_checkpoint(tmp_path / "flat.pt", {k: v for k, v in flat.items() if k not in ("format", "format_version", "package_version")})
     model, _ = load_model(busy_checkpoint)
     x = calibration_inputs(*model.contract.size, count=2, seed=6)
@@ -308,3 +310,21 @@ def test_files_of_earlier_formats_are_refused_in_one_line(busy_checkpoint, busy_
     onnx.save(proto, tmp_path / "v1.onnx")
     with pytest.raises(ValueError, match=r"v1.onnx: unsupported model format 'neuralbokeh-onnx' v1 \(this neuralbokeh reads v2\)"):
         OnnxBokeh(tmp_path / "v1.onnx", threads=1)
+
+
+def test_a_large_plate_checks_a_sample_of_its_tiles_that_stands_for_all(busy_checkpoint, tmp_path):
+    """A plate of 4 x 4 tiles is checked on the grid's corners, edge middles and centre (9 tiles;
+    --full-parity: all 16). Every tile of the sampled file still matches PyTorch on fresh inputs."""
+    path = tmp_path / "plate.onnx"
+    report = export_checkpoint(busy_checkpoint, path, kernels="direct", threads=1, size=(64, 64))
+    assert report["metadata"]["layout"][:2] == [4, 4]
+    assert report["parity_tiles"] == [0, 2, 3, 8, 10, 11, 12, 14, 15] and max(report["parity"].values()) <= 1e-4
+    full = export_checkpoint(busy_checkpoint, tmp_path / "full.onnx", kernels="direct", threads=1, size=(64, 64), full_parity=True)
+    assert full["parity_tiles"] == list(range(16)) and max(full["parity"].values()) <= 1e-4
+    from neuralbokeh.export.exporter import plate_model
+
+    model = plate_model(load_model(busy_checkpoint)[0], (64, 64))
+    x = calibration_inputs(64, 64, count=2, seed=8)
+    with torch.no_grad():
+        want = model(x).numpy()
+    assert np.abs(_run_onnx(path, x[:, :3].numpy(), x[:, 3:].numpy()) - want).max() < 1e-4

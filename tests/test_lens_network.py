@@ -292,3 +292,39 @@ def test_a_coc_scale_the_blocks_cannot_cover_is_refused():
     with pytest.raises(ValueError, match=r"a CoC scale of 20 px over 6 blocks .* use at least 10 blocks"):
         build_model(ModelConfig(blocks=6, tile=24, overlap=8), Contract(48, 48, NORM, 20.0, 20.0))
     assert build_model(ModelConfig(blocks=6, tile=24, overlap=8), Contract(48, 48, NORM, 13.0, 13.0)).step_px == 2.0
+
+
+def test_a_saturated_surface_lets_no_light_from_behind_through_whatever_the_rounding():
+    """Covers summing past 1 saturate to exactly 1: ``taken + cover * (room / cover)`` rounds to
+    1 - 6e-8 for about one cover in ten, which would let a 1e4 highlight behind leak 6e-4."""
+    m = _model()
+    cover = torch.linspace(1.0, 1.5, 1001).view(1, 1, 1, 1001)
+    acc = torch.zeros(1, 3, 6, 1, 1001)
+    acc[:, 1, 3:] = cover  # the same surface: black, covered (more than) fully
+    acc[:, 2, :3] = 1e4 * 0.5
+    acc[:, 2, 3:] = 0.5  # far light of a 1e4 highlight
+    out = m.composite(acc, background=torch.full((1, 3, 1, 1001), 1e4))
+    assert out.abs().max().item() == 0.0
+
+
+def test_the_learned_cat_eye_clips_the_pupil_as_the_lens_model_does():
+    """With its shift set to a lens's cat-eye, the model's clipping circle on a corner tile's pupil
+    is the one ``ApertureModel.transmits`` draws (same side of the pupil, same size), within the
+    soft edge; on the sensor's centre it clips nothing inside the aperture."""
+    from neuralbokeh.core.apertures import ApertureModel
+    from neuralbokeh.networks.lens import PUPIL_EXTENT, vignette_log_mask
+
+    lens, p = ApertureModel(cat_eye=0.6), 48
+    # a square sensor: the model's corner (1, 1) is the lens model's field (1, 1) / sqrt(2)
+    vignette = torch.tensor([0.6 / 2**0.5, 0.6 / 2**0.5, 0.0], dtype=torch.float64)
+    axis = np.linspace(-PUPIL_EXTENT, PUPIL_EXTENT, p)
+    u, v_up = axis[None, :], -axis[:, None]  # grid columns x right, rows y down
+    for fx, fy in ((1.0, 1.0), (-1.0, 0.5), (0.0, -1.0)):
+        pos = torch.tensor([[[fx, fy]]], dtype=torch.float64)
+        clip = vignette_log_mask(pos, vignette, p)[0, 0].exp().numpy()
+        want = lens.transmits(u, v_up, fx / 2**0.5, fy / 2**0.5)
+        edge = np.abs(np.hypot(u - (-0.6 * fx / 2**0.5), v_up - 0.6 * fy / 2**0.5) - 1.0) < 2.5 * (axis[1] - axis[0])
+        assert ((clip > 0.5) == want)[~edge].all()
+    m = _model(init="disk")
+    centre = vignette_log_mask(torch.zeros(1, 1, 2), m.vignette.detach(), m.config.pupil_size)[0, 0].exp()
+    assert centre[torch.from_numpy(np.hypot(u, v_up) <= 1.0)].min() > 0.95

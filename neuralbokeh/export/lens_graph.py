@@ -329,13 +329,13 @@ def _composite_buckets(top: Nodes, canvas: str, x: str, cfg: ModelConfig, contra
     for q in range(3):
         color = top.op("Slice", buckets[q], b.const("c0", [0], np.int64), b.const("c3", [3], np.int64), b.const("ax1", [1], np.int64))
         cover = top.op("Max", top.op("Slice", buckets[q], b.const("c3", [3], np.int64), b.const("c6", [6], np.int64), "ax1"), zero)
-        room = one if taken is None else top.op("Max", top.op("Sub", one, taken), zero)
-        frac = top.op("Min", one, top.op("Div", room, top.op("Max", cover, eps)))
-        lit, got = top.op("Mul", color, frac), top.op("Mul", cover, frac)
+        room = one if taken is None else top.op("Sub", one, taken)
+        lit = top.op("Mul", color, top.op("Min", one, top.op("Div", room, top.op("Max", cover, eps))))
         out = lit if out is None else top.op("Add", out, lit)
-        taken = got if taken is None else top.op("Add", taken, got)
+        # saturated is exactly 1 (taken + cover * frac can round to 1 - ulp, leaking a 1e4 highlight behind)
+        taken = top.op("Min", cover if taken is None else top.op("Add", taken, cover), one)
     if cfg.fill == "background":
-        hole = top.op("Max", top.op("Sub", one, taken), zero)
+        hole = top.op("Sub", one, taken)
         fill = hidden_background_graph(top, x, contract, plan.fill_radius_px)
         return top.op("Max", top.op("Add", out, top.op("Mul", hole, fill)), zero)
     return top.op("Max", top.op("Div", out, top.op("Max", taken, eps)), zero)

@@ -49,13 +49,16 @@ class ModelConfig:
             correction is interpolated at its position (lens), >= 1 (1: one pupil everywhere).
         pupil_init: the lens architecture's starting pupil: ``"disk"``, ``"gaussian"`` (the
             baseline's profile) or ``"aperture"`` (the data's aperture shape, from the contract).
+        vignetting: learn a cat-eye (lens): the pupil clipped by a circle (the barrel's image,
+            radius 1 aperture radius at the start) that moves across the pupil in proportion to
+            the field position, 0 at the start; the field grid learns what it leaves.
         occlusion_margin_px: CoC difference (px) over which light changes from "same surface"
             to "in front of / behind" the receiving pixel (lens), > 0.
         fill: what the lens architecture puts where its coverage falls short (what a blurred
             foreground uncovers): ``"background"`` (the visible background around the occluder,
             as the reference renderer's default) or ``"normalize"`` (divide by the coverage).
         (``features``, ``head`` and the FFT thresholds: paper only; ``pupil_*``,
-        ``field_grid``, ``occlusion_margin_px``, ``fill``: lens only; the rest: both.)
+        ``field_grid``, ``vignetting``, ``occlusion_margin_px``, ``fill``: lens only; the rest: both.)
     """
 
     architecture: str = "lens"
@@ -71,6 +74,7 @@ class ModelConfig:
     pupil_size: int = 48
     pupil_init: str = "disk"
     field_grid: int = 5
+    vignetting: bool = True
     occlusion_margin_px: float = 2.0
     fill: str = "background"
 
@@ -85,6 +89,8 @@ class ModelConfig:
             raise ValueError(f"model.overlap must be an integer with 0 <= 2 * overlap <= tile ({self.tile}), got {self.overlap!r}")
         if isinstance(self.field_grid, bool) or not isinstance(self.field_grid, int) or self.field_grid < 1:
             raise ValueError(f"model.field_grid must be an integer >= 1, got {self.field_grid!r}")
+        if not isinstance(self.vignetting, bool):
+            raise ValueError(f"model.vignetting must be true or false, got {self.vignetting!r}")
         if not isinstance(self.pupil_size, int) or self.pupil_size < 4:
             raise ValueError(f"model.pupil_size must be an integer >= 4, got {self.pupil_size!r}")
         m = self.occlusion_margin_px

@@ -208,6 +208,23 @@ def overlap_for(max_coc_px: float) -> int:
     return math.ceil(0.5 * max_coc_px * 1.1)
 
 
+def vignette_log_mask(pos: torch.Tensor, vignette: torch.Tensor, size: int) -> torch.Tensor:
+    """Log-transmission ``(B, T, size, size)`` of the cat-eye's clipping circle on the pupil grid
+    at the field positions ``pos`` ``(B, T, 2)`` (x, y in [-1, 1] over the sensor).
+
+    Mechanical vignetting: the lens barrel's image, a circle of radius ``exp(vignette[2])``
+    aperture radii (a little over 1 at the start), moves towards the image centre by ``vignette[:2]`` (x, y) radii per unit of
+    field (two factors: the sensor's aspect ratio is not known), so light passes where the pupil
+    and the circle overlap. Its edge is soft over one grid step so that it learns."""
+    axis = torch.linspace(-PUPIL_EXTENT, PUPIL_EXTENT, size, dtype=pos.dtype, device=pos.device)
+    centre = -vignette[:2] * pos  # (B, T, 2) in aperture radii; grid columns: x right, rows: y down
+    du = axis[None, None, None, :] - centre[..., 0, None, None]
+    dv = axis[None, None, :, None] - centre[..., 1, None, None]
+    r = torch.sqrt(du * du + dv * dv + _EPS)
+    step = 2.0 * PUPIL_EXTENT / (size - 1)
+    return -F.softplus((r - torch.exp(vignette[2])) / step)  # = log sigmoid((radius - r) / step)
+
+
 def field_positions(layout: TileLayout, height: int, width: int, window: torch.Tensor) -> torch.Tensor:
     """The sensor position of each tile's core centre, ``(B, tiles, 2)`` as ``(x, y)`` in [-1, 1]
     (the whole sensor's left/top edge at -1), for images of ``height x width`` px lying on the
@@ -255,6 +272,10 @@ class LensBokeh(nn.Module):
         g = cfg.field_grid
         self.pupil_field = nn.Parameter(torch.zeros(g, g, 2, 3, cfg.pupil_size, cfg.pupil_size))
         self.log_channel_scale = nn.Parameter(torch.zeros(3))
+        # cat-eye: (shift along the sensor's x and y per unit of field, log radius), aperture radii
+        # clipping nothing on the axis at the start: the circle 3 grid steps outside the aperture's rim
+        rim = 1.0 + 3.0 * 2.0 * PUPIL_EXTENT / (cfg.pupil_size - 1)
+        self.vignette = nn.Parameter(torch.tensor([0.0, 0.0, math.log(rim)])) if cfg.vignetting else None
         self._masks: dict[tuple[int, ...], torch.Tensor] = {}
         reach = overlap_for(c_train)
         if cfg.tiling == "overlap" and cfg.overlap < reach:
@@ -291,18 +312,22 @@ class LensBokeh(nn.Module):
                     batch: int = 1) -> torch.Tensor:
         """Log-transmissions of each image's tiles' pupils ``(B, tiles, 2, 3, P, P)`` for frames of
         ``height x width`` px on the sensor ``window`` ``(B, 4)`` (default: the whole sensor)."""
-        device = self.pupil_shared.device
+        device, dtype = self.pupil_shared.device, self.pupil_shared.dtype
         if window is None:
-            window = torch.tensor([[0.0, 0.0, 1.0, 1.0]], device=device)
+            window = torch.tensor([[0.0, 0.0, 1.0, 1.0]], device=device, dtype=dtype)
         if window.ndim != 2 or window.shape[1] != 4 or window.shape[0] not in (1, batch):
             raise ValueError(f"window must have shape ({batch}, 4) or (1, 4): (left, top, width, height), got {tuple(window.shape)}")
         window = window.expand(batch, 4)
-        pos = field_positions(layout, height, width, window.to(device=device, dtype=torch.float32))  # (B, T, 2)
+        pos = field_positions(layout, height, width, window.to(device=device, dtype=dtype))  # (B, T, 2)
         g, p = self.config.field_grid, self.config.pupil_size
         nodes = self.pupil_field.permute(2, 3, 4, 5, 0, 1).reshape(1, 6 * p * p, g, g)  # rows: y, cols: x
         corr = F.grid_sample(nodes, pos.reshape(1, -1, 1, 2), mode="bilinear", padding_mode="border", align_corners=True)
         corr = corr.reshape(2, 3, p, p, *pos.shape[:2]).permute(4, 5, 0, 1, 2, 3)
-        return self.pupil_shared + corr
+        pupils = self.pupil_shared + corr
+        if self.vignette is None:
+            return pupils
+        return pupils + vignette_log_mask(pos, self.vignette, p)[:, :, None, None]
+
 
     def kernels(self, n: int, pupils: torch.Tensor, diameter: float) -> torch.Tensor:
         """Band ``n``'s kernels ``(M, 2, 3, k, k)`` for the pupils ``(M, 2, 3, P, P)`` (log) at CoC
@@ -313,9 +338,9 @@ class LensBokeh(nn.Module):
         h = k // 2
         scale = torch.exp(self.log_channel_scale)  # (3,)
         radius = 0.5 * float(diameter) * scale  # (3,) px
-        device = pupils.device
-        offs = (torch.arange(SUPERSAMPLE, dtype=torch.float32, device=device) + 0.5) / SUPERSAMPLE - 0.5
-        pos = (torch.arange(-h, h + 1, dtype=torch.float32, device=device)[:, None] + offs).reshape(-1)
+        device, dtype = pupils.device, pupils.dtype
+        offs = (torch.arange(SUPERSAMPLE, dtype=dtype, device=device) + 0.5) / SUPERSAMPLE - 0.5
+        pos = (torch.arange(-h, h + 1, dtype=dtype, device=device)[:, None] + offs).reshape(-1)
         m = pos.numel()
         u = pos[None, None, :] / radius[:, None, None] / PUPIL_EXTENT  # (3, 1, m), in grid units [-1, 1]
         v = pos[None, :, None] / radius[:, None, None] / PUPIL_EXTENT  # rows go down; grid rows too
@@ -423,7 +448,9 @@ class LensBokeh(nn.Module):
             room = (1.0 - taken).clamp_min(0.0)
             frac = torch.minimum(torch.ones_like(a), room / a.clamp_min(_EPS))
             out = out + color[:, k] * frac
-            taken = taken + a * frac
+            # = taken + a * frac, but exactly 1 once saturated: a rounding of 1 - ulp would let
+            # a 1e4 highlight behind a covered surface leak through
+            taken = torch.clamp_max(taken + a, 1.0)
         if background is not None:
             return out + (1.0 - taken).clamp_min(0.0) * background
         return out / taken.clamp_min(_EPS)
