@@ -246,9 +246,9 @@ def export_checkpoint(
 
     Returns:
         A report: ``parity`` (max abs error per probe case, against the PyTorch function
-        of the exported kernels), ``parity_tiles`` (the tiles it convolved), ``approximation`` (max abs error of that function against
-        the trained model, per case: 0 for ``direct``), ``kernels`` (rank per convolution),
-        ``band_scales`` (lens network: the grid reduction ``{n: s}`` of each band n >= 1; None
+        of the exported kernels), ``parity_tiles`` (the tiles it convolved), ``approximation``
+        (max abs error of that function against the trained model, per case: 0 for ``direct``),
+        ``kernels`` (rank per convolution), ``band_scales`` (lens network: the grid reduction ``{n: s}`` of each band n >= 1; None
         otherwise), ``metadata`` and ``path``.
 
     Raises:
@@ -300,8 +300,7 @@ def export_checkpoint(
     with atomic_write(out) as tmp:
         onnx.save(onnx_model, tmp)
     return {"path": str(out), "parity": parity, "parity_tiles": np.flatnonzero(active).tolist(), "tolerance": tolerance,
-            "approximation": approx,
-            "kernels": build.report, "band_scales": build.scales, "metadata": meta}
+            "approximation": approx, "kernels": build.report, "band_scales": build.scales, "metadata": meta}
 
 
 def _check_opset(opset: int | None, lens: bool | None) -> int:
@@ -349,7 +348,7 @@ class _LensExport:
         if self.exact is None:
             self.exact = copy.deepcopy(self.model).double()
         out = self.exact(x.double(), self.window.double(), tile_active=active, scales=self.scales,
-                    plan_coc_px=self.model.contract.max_coc_px)
+                         plan_coc_px=self.model.contract.max_coc_px)
         return out.to(x.dtype)
 
     def trained(self, x: torch.Tensor, active: torch.Tensor) -> torch.Tensor:

@@ -50,8 +50,9 @@ class ModelConfig:
         pupil_init: the lens architecture's starting pupil: ``"disk"``, ``"gaussian"`` (the
             baseline's profile) or ``"aperture"`` (the data's aperture shape, from the contract).
         vignetting: learn a cat-eye (lens): the pupil clipped by a circle (the barrel's image,
-            radius 1 aperture radius at the start) that moves across the pupil in proportion to
-            the field position, 0 at the start; the field grid learns what it leaves.
+            at the start 3 pupil-grid steps wider than the aperture and centred) that moves
+            across the pupil in proportion to the field position; the field grid learns what
+            it leaves.
         occlusion_margin_px: CoC difference (px) over which light changes from "same surface"
             to "in front of / behind" the receiving pixel (lens), > 0.
         fill: what the lens architecture puts where its coverage falls short (what a blurred

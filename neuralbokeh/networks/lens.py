@@ -208,21 +208,25 @@ def overlap_for(max_coc_px: float) -> int:
     return math.ceil(0.5 * max_coc_px * 1.1)
 
 
+def pupil_step(size: int) -> float:
+    """The spacing (aperture radii) of a ``size`` x ``size`` pupil grid's samples."""
+    return 2.0 * PUPIL_EXTENT / (size - 1)
+
+
 def vignette_log_mask(pos: torch.Tensor, vignette: torch.Tensor, size: int) -> torch.Tensor:
     """Log-transmission ``(B, T, size, size)`` of the cat-eye's clipping circle on the pupil grid
     at the field positions ``pos`` ``(B, T, 2)`` (x, y in [-1, 1] over the sensor).
 
     Mechanical vignetting: the lens barrel's image, a circle of radius ``exp(vignette[2])``
-    aperture radii (a little over 1 at the start), moves towards the image centre by ``vignette[:2]`` (x, y) radii per unit of
-    field (two factors: the sensor's aspect ratio is not known), so light passes where the pupil
-    and the circle overlap. Its edge is soft over one grid step so that it learns."""
+    aperture radii (a little over 1 at the start), moves towards the image centre by
+    ``vignette[:2]`` (x, y) radii per unit of field (two factors: the sensor's aspect ratio is
+    not known), so light passes where the pupil and the circle overlap. Its edge is soft over one grid step so that it learns."""
     axis = torch.linspace(-PUPIL_EXTENT, PUPIL_EXTENT, size, dtype=pos.dtype, device=pos.device)
     centre = -vignette[:2] * pos  # (B, T, 2) in aperture radii; grid columns: x right, rows: y down
     du = axis[None, None, None, :] - centre[..., 0, None, None]
     dv = axis[None, None, :, None] - centre[..., 1, None, None]
     r = torch.sqrt(du * du + dv * dv + _EPS)
-    step = 2.0 * PUPIL_EXTENT / (size - 1)
-    return -F.softplus((r - torch.exp(vignette[2])) / step)  # = log sigmoid((radius - r) / step)
+    return -F.softplus((r - torch.exp(vignette[2])) / pupil_step(size))  # = log sigmoid((radius - r) / step)
 
 
 def field_positions(layout: TileLayout, height: int, width: int, window: torch.Tensor) -> torch.Tensor:
@@ -274,7 +278,7 @@ class LensBokeh(nn.Module):
         self.log_channel_scale = nn.Parameter(torch.zeros(3))
         # cat-eye: (shift along the sensor's x and y per unit of field, log radius), aperture radii
         # clipping nothing on the axis at the start: the circle 3 grid steps outside the aperture's rim
-        rim = 1.0 + 3.0 * 2.0 * PUPIL_EXTENT / (cfg.pupil_size - 1)
+        rim = 1.0 + 3.0 * pupil_step(cfg.pupil_size)
         self.vignette = nn.Parameter(torch.tensor([0.0, 0.0, math.log(rim)])) if cfg.vignetting else None
         self._masks: dict[tuple[int, ...], torch.Tensor] = {}
         reach = overlap_for(c_train)
