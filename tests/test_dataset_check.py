@@ -105,11 +105,11 @@ def test_a_run_never_overwrites_another_and_a_dying_run_keeps_its_steps(tiny_dat
     # Ctrl-C at step 3 of 5: the checkpoint holds step 2 and --resume finishes the run
     real, calls = loop_module.compute_loss, {"n": 0}
 
-    def interrupt_at_3(model, x, y, kind, window=None, weights=None):
+    def interrupt_at_3(model, x, y, kind, window=None, weights=None, **kw):
         calls["n"] += 1
         if calls["n"] == 3:
             raise KeyboardInterrupt
-        return real(model, x, y, kind, window, weights)
+        return real(model, x, y, kind, window, weights, **kw)
 
     monkeypatch.setattr(loop_module, "compute_loss", interrupt_at_3)
     cfg = _config(tmp_path / "a", tiny_dataset, steps=5)

@@ -13,6 +13,7 @@ from neuralbokeh.checkpoint import load_model
 from neuralbokeh.core.contract import Contract
 from neuralbokeh.core.normalization import Normalization
 from neuralbokeh.data.dataset import FocalStackDataset
+from neuralbokeh.networks import build_model
 from neuralbokeh.networks.config import ModelConfig
 from neuralbokeh.training import load_config, train
 from neuralbokeh.training import loop as loop_module
@@ -107,6 +108,8 @@ def test_config_errors(tmp_path):
         load_config(tmp_path / "a.toml")
     with pytest.raises(FileNotFoundError, match="no such config"):
         load_config(tmp_path / "missing.toml")
+    with pytest.raises(ValueError, match=r"train.ssim_weight must be a finite number >= 0, got -0.5"):
+        load_config(good, ["train.ssim_weight=-0.5"])
 
 
 # --- training ------------------------------------------------------------------------------------
@@ -207,9 +210,9 @@ def test_non_finite_steps_are_skipped_then_abort(tiny_dataset, tmp_path, monkeyp
     real = loop_module.compute_loss
     calls = {"n": 0}
 
-    def nan_on_steps_2_and_3(model, x, y, kind, window=None, weights=None):
+    def nan_on_steps_2_and_3(model, x, y, kind, window=None, weights=None, **kw):
         calls["n"] += 1
-        loss = real(model, x, y, kind, window, weights)
+        loss = real(model, x, y, kind, window, weights, **kw)
         return loss * float("nan") if calls["n"] in (2, 3) else loss
 
     monkeypatch.setattr(loop_module, "compute_loss", nan_on_steps_2_and_3)
@@ -218,7 +221,7 @@ def test_non_finite_steps_are_skipped_then_abort(tiny_dataset, tmp_path, monkeyp
     log = (tmp_path / "a" / "run" / "log.csv").read_text().splitlines()
     assert [r.split(",")[3] for r in log[1:]] == ["0", "1", "2", "2", "2"]
 
-    monkeypatch.setattr(loop_module, "compute_loss", lambda m, x, y, k, w=None, lw=None: real(m, x, y, k, w, lw) * float("inf"))
+    monkeypatch.setattr(loop_module, "compute_loss", lambda m, x, y, k, w=None, lw=None, **kw: real(m, x, y, k, w, lw, **kw) * float("inf"))
     with pytest.raises(RuntimeError, match=r"3 non-finite steps in a row, the last at step 3 \(batch scenes on rank 0: scene_000"):
         train(_config(tmp_path / "b", tiny_dataset, steps=5, max_nonfinite=3), progress=False)
 
@@ -337,3 +340,30 @@ def test_the_crop_loss_leaves_out_just_the_light_a_crop_cannot_see():
     assert crop_loss_margin([], c_max) == 0  # whole scenes
     with pytest.raises(ValueError, match="data.crop_margin must be an integer >= 0"):
         build_config({"data": {"roots": ["data"], "crop_margin": -2}})
+
+
+def test_the_ssim_term_is_the_evaluation_ssim_on_the_pixels_the_loss_keeps():
+    """``train.ssim_weight`` adds ``w (1 - SSIM)``, the held-out metric's SSIM (kornia, 11 px),
+    over the same pixels as the MSE; 0 leaves the MSE alone."""
+    from kornia.losses import ssim_loss
+    from kornia.metrics import ssim
+
+    cfg = ModelConfig(blocks=4, tile=16, overlap=4)
+    model = build_model(cfg, Contract(24, 24, Normalization(), 8.0, 8.0)).eval()
+    g = torch.Generator().manual_seed(5)
+    x = torch.cat([torch.rand(2, 3, 24, 24, generator=g) * 1.8 - 0.9, torch.rand(2, 1, 24, 24, generator=g) * 2 - 1], 1)
+    y = torch.rand(2, 3, 24, 24, generator=g) * 1.8 - 0.9
+    with torch.no_grad():
+        pred = model(x)
+        mse = loop_module.compute_loss(model, x, y, "image")
+        both = loop_module.compute_loss(model, x, y, "image", ssim_weight=0.5)
+        ssim_term = 2.0 * ssim_loss((pred + 1) / 2, (y + 1) / 2, 11)  # kornia's loss is (1 - SSIM) / 2
+        torch.testing.assert_close(mse, torch.nn.functional.mse_loss(pred, y))
+        torch.testing.assert_close(both - mse, 0.5 * ssim_term, rtol=1e-5, atol=1e-7)
+        # with crop weights, both terms average over the kept pixels only
+        w = torch.zeros(2, 1, 24, 24)
+        w[..., 4:20, 4:20] = 1.0
+        kept = loop_module.compute_loss(model, x, y, "image", weights=w, ssim_weight=0.5)
+        s_map = 1.0 - ssim((pred + 1) / 2, (y + 1) / 2, 11)
+        want = (((pred - y).square() + 0.5 * s_map) * w).sum() / (w.sum() * 3)
+        torch.testing.assert_close(kept, want, rtol=1e-5, atol=1e-7)

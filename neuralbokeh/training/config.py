@@ -9,6 +9,7 @@ that is not valid TOML is taken as a string (``train.out_dir=runs/x``).
 
 from __future__ import annotations
 
+import math
 import tomllib
 import types
 import typing
@@ -63,6 +64,10 @@ class TrainSection:
             ``"none"``: one learning rate for all (measured: diverges at N = 20 with lr 1e-3).
         field_lr_scale: the lens network's field-dependent pupil corrections learn at this
             fraction of ``lr`` (the lens-wide pupil at ``lr``), in (0, 1].
+        ssim_weight: weight of ``1 - SSIM`` (the held-out metric, on the same pixels) added to
+            the MSE, >= 0 (0: the MSE alone, as the paper). The MSE rewards a blur that is right
+            on average; SSIM also asks for the structure (e.g. how much of a fine texture survives
+            a given CoC), where the MSE alone traded it away for PSNR.
         lr_schedule: ``"cosine"`` (to 10% of lr) or ``"constant"``, after ``warmup_steps``.
         warmup_steps: linear warm-up steps.
         grad_clip: clip the gradient norm to this value (0 = off).
@@ -81,6 +86,7 @@ class TrainSection:
     lr_schedule: str = "cosine"
     lr_kernel_scaling: str = "fan_in"
     field_lr_scale: float = 0.25
+    ssim_weight: float = 0.0
     warmup_steps: int = 20
     grad_clip: float = 1.0
     loss: str = "image"
@@ -114,6 +120,9 @@ class TrainConfig:
         for name in ("steps", "batch_size", "eval_every", "checkpoint_every", "max_nonfinite"):
             if getattr(t, name) < 1:
                 raise ValueError(f"train.{name} must be >= 1, got {getattr(t, name)}")
+        if isinstance(t.ssim_weight, bool) or not (isinstance(t.ssim_weight, (int, float)) and math.isfinite(t.ssim_weight)
+                                                     and t.ssim_weight >= 0.0):
+            raise ValueError(f"train.ssim_weight must be a finite number >= 0, got {t.ssim_weight!r}")
         if not (0.0 < t.field_lr_scale <= 1.0):
             raise ValueError(f"train.field_lr_scale must be in (0, 1], got {t.field_lr_scale}")
         if d.crop and (len(d.crop) != 2 or any(isinstance(v, bool) or not isinstance(v, int) or v < 1 for v in d.crop)):

@@ -32,7 +32,6 @@ from typing import Any, Iterator
 
 import torch
 import torch.distributed as dist
-import torch.nn.functional as F
 from kornia.metrics import psnr, ssim
 from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data.distributed import DistributedSampler
@@ -64,18 +63,24 @@ def run_model(model: torch.nn.Module, x: torch.Tensor, window: torch.Tensor | No
 
 
 def compute_loss(model: torch.nn.Module, x: torch.Tensor, y: torch.Tensor, kind: str,
-                 window: torch.Tensor | None = None, weights: torch.Tensor | None = None) -> torch.Tensor:
+                 window: torch.Tensor | None = None, weights: torch.Tensor | None = None,
+                 ssim_weight: float = 0.0) -> torch.Tensor:
     """MSE of the reassembled image (``"image"``) or of the un-blended tiles (``"tile"``), over
-    the pixels where ``weights`` ``(B, 1, H, W)`` is 1 (all when None; see :func:`loss_weights`)."""
+    the pixels where ``weights`` ``(B, 1, H, W)`` is 1 (all when None; see :func:`loss_weights`),
+    plus ``ssim_weight`` x (1 - SSIM) over the same pixels (the images mapped to [0, 1], 11 px
+    window: the evaluation's SSIM)."""
     if kind == "tile":
         inner = model.module if isinstance(model, DistributedDataParallel) else model
         pred, y = run_model(model, x, window, return_tiles=True), inner.tile_targets(y)
         weights = None if weights is None else inner.tile_targets(weights)
     else:
         pred = run_model(model, x, window)
-    if weights is None:
-        return F.mse_loss(pred, y)
-    return ((pred - y).square() * weights).sum() / (weights.sum() * y.shape[1]).clamp_min(1.0)
+    w = torch.ones_like(pred[:, :1]) if weights is None else weights
+    count = (w.sum() * y.shape[1]).clamp_min(1.0)
+    loss = ((pred - y).square() * w).sum() / count
+    if ssim_weight > 0:
+        loss = loss + ssim_weight * ((1.0 - ssim((pred + 1) / 2, (y + 1) / 2, 11)) * w).sum() / count
+    return loss
 
 
 def crop_loss_margin(crop: list[int] | None, max_coc_px: float, margin: int | str = "auto") -> int:
@@ -461,7 +466,7 @@ def _step(net: torch.nn.Module, model: torch.nn.Module, optimizer: torch.optim.O
     for group in optimizer.param_groups:  # the schedule is a function of the step alone
         group["lr"] = group["lr_scale"] * t.lr * _lr_factor(step, cfg)
     optimizer.zero_grad(set_to_none=True)
-    loss = compute_loss(net, x, y, t.loss, window, weights)
+    loss = compute_loss(net, x, y, t.loss, window, weights, ssim_weight=t.ssim_weight)
     loss.backward()
     finite = torch.tensor(
         [float(torch.isfinite(loss)) * float(all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None))],
