@@ -17,6 +17,8 @@
    light fields for ``--minutes``.
 3. Evaluates on the fourth quadrant (``--test-quadrant``, default the bottom right), next to every
    classical baseline of ``neuralbokeh.evaluation``: linear and sRGB PSNR, SSIM, HDR-FLIP, ms/MP.
+4. Draws the learned pupils (sensor centre, right edge, top-right corner) next to the views'
+   exact discrete aperture (``neuralbokeh.evaluation.pupils``): ``--work``/report/pupils.png.
 
 What is held out: a quarter of the image, never seen in training, at the same four focus
 settings. It shares the scene's lighting and materials with the training quadrants, and its
@@ -96,6 +98,8 @@ def main() -> None:
         "train.checkpoint_every=200", f"train.out_dir='{args.work / 'run'}'", "--time-limit", str(args.minutes))
     run("-m", "neuralbokeh.evaluation", "--data", str(args.work / "test"), "--split", "all", "--models",
         str(args.work / "run" / "checkpoint.pt"), "--baselines", "all", "--repeats", "1", "--out", str(args.work / "report"))
+    run("-m", "neuralbokeh.evaluation.pupils", str(args.work / "run" / "checkpoint.pt"), "--out",
+        str(args.work / "report" / "pupils.png"), "--scene", str(args.work / "test" / args.test_quadrant))
     print((args.work / "report" / "report.md").read_text())
 
 

@@ -133,3 +133,39 @@ def test_split_all_and_the_default_split_follows_the_training_run(tiny_dataset, 
     trained = load_checkpoint(busy_checkpoint)["train_config"]["data"]
     assert split_of_models([load_model_method(busy_onnx, 1)], None, None) == (trained["test_fraction"], trained["split_seed"])
     assert split_of_models([], None, None) == (0.2, 0)
+
+
+def test_the_pupil_picture_shows_the_learned_pupil_beside_the_declared_aperture(trained_checkpoint, trained_paper_checkpoint,
+                                                                                 tiny_dataset, tmp_path):
+    """``python -m neuralbokeh.evaluation.pupils``: a network that starts from the data's aperture
+    (``pupil_init = "aperture"``, no cat-eye) shows, at the sensor's centre, exactly the
+    reference panel; a learned cat-eye clips the corner's pupil on the side away from the
+    centre; the CLI writes the sheet and refuses what it cannot show."""
+    from neuralbokeh.core.contract import Contract
+    from neuralbokeh.core.io import read_image
+    from neuralbokeh.core.normalization import Normalization
+    from neuralbokeh.evaluation.pupils import learned_pupils, reference_panel
+    from neuralbokeh.evaluation.pupils import main as pupils_main
+    from neuralbokeh.networks import ModelConfig, build_model
+
+    shape = Polygon(7)
+    contract = Contract(32, 32, Normalization(), 9.0, 9.0, aperture=ApertureModel(shape).to_dict())
+    model = build_model(ModelConfig(blocks=4, tile=16, overlap=4, pupil_init="aperture", vignetting=False), contract)
+    centre = learned_pupils(model, [(0.0, 0.0)])[0]
+    np.testing.assert_allclose(centre, reference_panel(shape, model.config.pupil_size), atol=1.01e-3)  # the 1e-3 floor
+    cat = build_model(ModelConfig(blocks=4, tile=16, overlap=4, pupil_init="aperture"), contract)
+    with torch.no_grad():
+        cat.vignette.copy_(torch.tensor([0.6, 0.6, 0.0]))  # a unit circle moving 0.6 radii per unit of field
+    corner = learned_pupils(cat, [(1.0, -1.0)])[0, ..., 1]  # the top-right corner: x right, y up
+    p = cat.config.pupil_size
+    top_right, bottom_left = corner[: p // 3, -p // 3 :].sum(), corner[-p // 3 :, : p // 3].sum()
+    assert top_right < 0.2 * bottom_left, (top_right, bottom_left)
+
+    out = tmp_path / "pupils.png"
+    assert pupils_main([str(trained_checkpoint), "--out", str(out), "--scene", str(next(tiny_dataset.glob("scene_*")))]) == 0
+    size = model.config.pupil_size * 4
+    assert read_image(out).shape == (size, 4 * size + 3 * 4, 3)  # the reference, then centre, edge, corner
+    with pytest.raises(FileExistsError, match="--overwrite"):
+        pupils_main([str(trained_checkpoint), "--out", str(out)])
+    with pytest.raises(ValueError, match="only the lens network learns pupils"):
+        pupils_main([str(trained_paper_checkpoint), "--out", str(tmp_path / "paper.png")])

@@ -322,7 +322,12 @@ class LensBokeh(nn.Module):
         if window.ndim != 2 or window.shape[1] != 4 or window.shape[0] not in (1, batch):
             raise ValueError(f"window must have shape ({batch}, 4) or (1, 4): (left, top, width, height), got {tuple(window.shape)}")
         window = window.expand(batch, 4)
-        pos = field_positions(layout, height, width, window.to(device=device, dtype=dtype))  # (B, T, 2)
+        return self.pupils_at(field_positions(layout, height, width, window.to(device=device, dtype=dtype)))
+
+    def pupils_at(self, pos: torch.Tensor) -> torch.Tensor:
+        """Log-transmissions ``(B, T, 2, 3, P, P)`` of the pupils at sensor positions ``pos``
+        ``(B, T, 2)`` (x, y in [-1, 1] over the sensor, its left / top edge at -1): the lens-wide
+        pupil, the field correction interpolated there and the cat-eye's circle."""
         g, p = self.config.field_grid, self.config.pupil_size
         nodes = self.pupil_field.permute(2, 3, 4, 5, 0, 1).reshape(1, 6 * p * p, g, g)  # rows: y, cols: x
         corr = F.grid_sample(nodes, pos.reshape(1, -1, 1, 2), mode="bilinear", padding_mode="border", align_corners=True)
