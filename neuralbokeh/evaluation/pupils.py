@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import sys
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -79,6 +80,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     """The CLI (see the module doc)."""
     args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stdout)
     if args.scale < 1:
         raise ValueError(f"--scale must be a whole number >= 1, got {args.scale}")
     prepare_output(args.out, args.overwrite)
@@ -100,7 +102,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         write_image(args.out, np.round(sheet * 255).astype(np.uint8), pixel_type="uint8")
     else:
         write_image(args.out, sheet)
-    print(f"wrote {args.out}: {', '.join(labels)} (left to right)")
+    log.info("wrote %s: %s (left to right)", args.out, ", ".join(labels))
     return 0
 
 
