@@ -75,11 +75,14 @@ def compute_loss(model: torch.nn.Module, x: torch.Tensor, y: torch.Tensor, kind:
         weights = None if weights is None else inner.tile_targets(weights)
     else:
         pred = run_model(model, x, window)
-    w = torch.ones_like(pred[:, :1]) if weights is None else weights
-    count = (w.sum() * y.shape[1]).clamp_min(1.0)
-    loss = ((pred - y).square() * w).sum() / count
+    def mean(per_pixel: torch.Tensor) -> torch.Tensor:  # over the kept pixels
+        if weights is None:
+            return per_pixel.mean()
+        return (per_pixel * weights).sum() / (weights.sum() * per_pixel.shape[1]).clamp_min(1.0)
+
+    loss = mean((pred - y).square())
     if ssim_weight > 0:
-        loss = loss + ssim_weight * ((1.0 - ssim((pred + 1) / 2, (y + 1) / 2, 11)) * w).sum() / count
+        loss = loss + ssim_weight * mean(1.0 - ssim((pred + 1) / 2, (y + 1) / 2, 11))
     return loss
 
 
