@@ -16,8 +16,8 @@ Conventions:
     * Weights (a synthetic aperture, ``--aperture``): view ``(row, col)`` is the pupil cell whose
       image it carries, so each view is weighted by the shape's transmission at that cell's
       centre (and, with ``--cat-eye``, by whether the pixel's vignetting circle passes it).
-      The declared aperture of such a scene is that grid of weights as a mask, the exact
-      discrete aperture; without ``--aperture`` every view counts and the scene declares none
+      The declared aperture of such a scene is that grid of weighted points (``ViewGrid``), the
+      exact discrete aperture at every CoC; without ``--aperture`` every view counts and the scene declares none
       (the learner finds the lens, as for a photograph).
     * Depth: disparity is affine in 1/depth. ``--depth-range NEAR FAR`` (m) places the largest
       and smallest disparity; the scene's ``ThinLens`` then reproduces every CoC map through
@@ -45,7 +45,7 @@ import torch.nn.functional as F
 from tqdm import tqdm
 
 from neuralbokeh import __version__
-from neuralbokeh.core.apertures import ApertureModel, MaskAperture, field_position, parse_aperture
+from neuralbokeh.core.apertures import ApertureModel, ViewGrid, field_position, parse_aperture
 from neuralbokeh.core.cli import HelpFormatter, run_cli
 from neuralbokeh.core.io import prepare_output, read_image
 from neuralbokeh.core.optics import ThinLens
@@ -171,15 +171,15 @@ def view_weights(n: int, signs: tuple[int, int], aperture: ApertureModel | None)
 
 
 def discrete_aperture(weights: np.ndarray, signs: tuple[int, int], cat_eye: float = 0.0) -> ApertureModel:
-    """The exact discrete aperture of a weighted refocus: the weights as a pupil mask (row 0 at
-    v = +1), each view one cell."""
+    """The exact discrete aperture of a weighted refocus: the weights at the views' places in
+    the pupil (row 0 at v = +1), each view a point (:class:`~neuralbokeh.core.apertures.ViewGrid`)."""
     u, v = pupil_of_views(weights.shape[0], signs)
     n = weights.shape[0]
     mask = np.zeros_like(weights, dtype=np.float64)
     rows = np.rint((1.0 - v) * n / 2.0 - 0.5).astype(int)
     cols = np.rint((u + 1.0) * n / 2.0 - 0.5).astype(int)
     mask[rows, cols] = weights / weights.max()
-    return ApertureModel(MaskAperture(mask), cat_eye=cat_eye)
+    return ApertureModel(ViewGrid(mask), cat_eye=cat_eye)
 
 
 def refocus(views: np.ndarray, d0: float, signs: tuple[int, int], weights: np.ndarray | None = None,

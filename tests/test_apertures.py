@@ -12,10 +12,12 @@ from neuralbokeh.core.apertures import (
     Polygon,
     Ring,
     Star,
+    ViewGrid,
     aperture_from_dict,
     field_position,
     kernel_radius_px,
     parse_aperture,
+    pupil_grid,
     shape_kernel,
 )
 
@@ -134,6 +136,31 @@ def test_mask_aperture_validation():
         MaskAperture(np.zeros((3, 3)))
 
 
+def test_a_light_field_s_views_are_points_of_the_pupil_splatted_bilinearly():
+    weights = np.zeros((3, 3))
+    weights[0, 2], weights[1, 1] = 1.0, 0.5  # top-right view and the centre view
+    views = ViewGrid(weights)
+    # CoC 10.5 px: the views' cells are 3.5 px apart, the top-right one at (+3.5, -3.5) px
+    k = shape_kernel(views, 10.5)
+    h = k.shape[0] // 2
+    assert h == kernel_radius_px(10.5) + 1 and k.sum() == pytest.approx(1.0)
+    want = np.zeros_like(k)
+    want[h, h] = 1.0 / 3.0
+    want[h - 4 : h - 2, h + 3 : h + 5] = 0.25 * 2.0 / 3.0  # half-way between 4 pixels: a quarter each
+    np.testing.assert_allclose(k, want, atol=1e-12)
+    pts, t = pupil_grid(views, 16)  # ray tracers take the views themselves, whatever the grid
+    np.testing.assert_allclose(pts, [[2.0 / 3.0, 2.0 / 3.0], [0.0, 0.0]])
+    np.testing.assert_allclose(t, [1.0, 0.5])
+    assert views.transmission(np.array([0.9]), np.array([0.4]))[0] == 1.0  # pictures: each view its cell
+    model = ApertureModel(views, cat_eye=0.9)  # at the right edge the circle (centre u = -0.9) passes the centre view only
+    corner = model.kernels(10.5, (1.0, 0.0))[1]
+    assert corner[h, h] == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="square"):
+        ViewGrid(np.ones((2, 3)))
+    with pytest.raises(ValueError, match="all zero"):
+        ViewGrid(np.zeros((3, 3)))
+
+
 def test_cat_eye_centre_unchanged_corner_tangential():
     model = ApertureModel(Disk(), cat_eye=0.8)
     centre = model.kernels(31.0, (0.0, 0.0))[1]
@@ -169,7 +196,7 @@ def test_field_position():
     assert math.hypot(*field_position(100, 200, 101, 201)) == pytest.approx(1.0)
 
 
-@pytest.mark.parametrize("shape", SHAPES + [MaskAperture(np.eye(4))], ids=lambda s: s.name)
+@pytest.mark.parametrize("shape", SHAPES + [MaskAperture(np.eye(4)), ViewGrid(np.eye(3) * 0.3)], ids=lambda s: s.name)
 def test_dict_round_trip(shape):
     back = aperture_from_dict(shape.to_dict())
     assert back == shape

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from neuralbokeh.core.apertures import ApertureModel, Polygon
+from neuralbokeh.core.apertures import ApertureModel, Polygon, ViewGrid
 from neuralbokeh.evaluation.evaluate import BASELINES, main
 from neuralbokeh.evaluation.metrics import flip_hdr, image_metrics, pareto_front, tonemap_srgb
 from neuralbokeh.render import scatter_defocus
@@ -153,6 +153,8 @@ def test_the_pupil_picture_shows_the_learned_pupil_beside_the_declared_aperture(
     model = build_model(ModelConfig(blocks=4, tile=16, overlap=4, pupil_init="aperture", vignetting=False), contract)
     centre = learned_pupils(model, [(0.0, 0.0)])[0]
     np.testing.assert_allclose(centre, reference_panel(shape, model.config.pupil_size), atol=1.01e-3)  # the 1e-3 floor
+    views = reference_panel(ViewGrid(np.ones((3, 3))), 48)[..., 0]  # a light field's views: 9 points, not 9 cells
+    assert (views > 0).sum() == 9 and views.sum() == pytest.approx(9.0)
     cat = build_model(ModelConfig(blocks=4, tile=16, overlap=4, pupil_init="aperture"), contract)
     with torch.no_grad():
         cat.vignette.copy_(torch.tensor([0.6, 0.6, 0.0]))  # a unit circle moving 0.6 radii per unit of field

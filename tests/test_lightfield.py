@@ -46,17 +46,20 @@ def test_all_ones_weights_are_the_plain_mean_of_shifted_views():
     np.testing.assert_allclose(refocus(views, 3.0, SIGNS), views[N // 2, N // 2], rtol=1e-6)  # in focus: the centre view
 
 
-@pytest.mark.parametrize("side", [1, -1])  # the plane behind the focus (CoC +N) and in front of it (CoC -N)
-def test_one_plane_refocused_is_the_package_s_scatter_with_the_discrete_aperture(side):
-    views = _plane(2)
+@pytest.mark.parametrize("side", [1, -1])  # the plane behind the focus (CoC > 0) and in front of it (CoC < 0)
+@pytest.mark.parametrize("step", [0.5, 1.0, 2.5])  # the views' shifts (px) from one to the next: CoC = N step
+def test_one_plane_refocused_is_the_package_s_scatter_with_the_discrete_aperture(side, step):
+    # from a pixel apart the refocus is N x N copies of the image: the views are points of the
+    # pupil, not cells of it (a mask of cells is exact only at a step of 1 px)
+    views = _plane(2, size=(56, 64))
     aperture = ApertureModel(parse_aperture("heart"))  # not symmetric: orientation and the sign both show
     weights = view_weights(N, SIGNS, aperture)
     assert 0 < (weights > 0).sum() < N * N
-    got = refocus(views, 2.0 + side, SIGNS, weights)
+    got = refocus(views, 2.0 + side * step, SIGNS, weights)
     aif = torch.from_numpy(views[N // 2, N // 2]).permute(2, 0, 1)[None].double()
-    coc = torch.full((1, 1, *aif.shape[2:]), float(N * side), dtype=torch.float64)
+    coc = torch.full((1, 1, *aif.shape[2:]), N * side * step, dtype=torch.float64)
     want = scatter_defocus(aif, coc, discrete_aperture(weights, SIGNS))[0].permute(1, 2, 0).numpy()
-    m = N // 2 * 3 + N  # away from the border: views shifted in from outside are left out there
+    m = int(N // 2 * (2 + step)) + N + 2  # away from the border: views shifted in from outside are left out there
     np.testing.assert_allclose(got[m:-m, m:-m], want[m:-m, m:-m], rtol=1e-6, atol=1e-7)
     wrong = scatter_defocus(aif, -coc, discrete_aperture(weights, SIGNS))[0].permute(1, 2, 0).numpy()
     assert np.abs(got - wrong)[m:-m, m:-m].max() > 0.05  # the other sign is another image

@@ -10,6 +10,8 @@ import pytest
 import torch
 
 from neuralbokeh.checkpoint import load_model
+from neuralbokeh.core.apertures import ApertureModel
+from neuralbokeh.core.apertures.shapes import Polygon
 from neuralbokeh.core.contract import Contract
 from neuralbokeh.core.normalization import Normalization
 from neuralbokeh.data.dataset import FocalStackDataset
@@ -367,3 +369,59 @@ def test_the_ssim_term_is_the_evaluation_ssim_on_the_pixels_the_loss_keeps():
         s_map = 1.0 - ssim((pred + 1) / 2, (y + 1) / 2, 11)
         want = (((pred - y).square() + 0.5 * s_map) * w).sum() / (w.sum() * 3)
         torch.testing.assert_close(kept, want, rtol=1e-5, atol=1e-7)
+
+
+def _fit_one_band(truth: ApertureModel, scale: float, steps: int) -> tuple[torch.Tensor, torch.Tensor, float]:
+    """Train an untrained disk-pupil lens network, with the quickstart's optimiser settings, on
+    sparse highlights over a dim texture blurred at one constant CoC ``d`` (px) by the ``truth``
+    aperture scaled by ``scale`` (its rim at ``scale`` aperture radii). Returns the learned and
+    the true kernel at ``d`` (behind the focus plane, green, sensor centre; ``(k, k)`` each) and d."""
+    import torch.nn.functional as F
+
+    from neuralbokeh.training.config import TrainSection
+    from neuralbokeh.training.loop import compute_loss, param_groups
+
+    train_cfg = tomllib.loads((ROOT / "configs" / "quickstart.toml").read_text())["train"]
+    size, c_max = 48, 11.0
+    torch.manual_seed(0)
+    model = build_model(ModelConfig(blocks=7, tile=size, overlap=12, pupil_init="disk"),
+                        Contract(size, size, Normalization(), c_max, c_max))
+    d = float(model.plan(c_max).diameters[6])  # on a band centre: one band's kernel is all that is learned
+    true_k = torch.from_numpy(truth.kernels(d * scale)[1]).float()
+    g = torch.Generator().manual_seed(1)
+    aif = 0.05 * torch.rand(8, 3, size, size, generator=g)
+    aif = aif + (torch.rand(8, 1, size, size, generator=g) < 0.01) * 20.0 * torch.rand(8, 3, size, size, generator=g)
+    k = true_k.shape[-1]
+    target = F.conv2d(aif.reshape(-1, 1, size, size), true_k.flip(-2, -1)[None, None], padding=k // 2).view(8, 3, size, size)
+    norm = model.contract.normalization
+    x = torch.cat([norm.encode(aif), torch.full((8, 1, size, size), d / c_max)], 1)
+    keep = torch.zeros(8, 1, size, size)
+    keep[..., k:-k, k:-k] = 1.0  # away from the frame's edge, where light from outside it is missing
+    field_lr_scale = float(train_cfg.get("field_lr_scale", TrainSection.field_lr_scale))
+    opt = torch.optim.Adam(param_groups(model, "none", field_lr_scale), lr=train_cfg["lr"])
+    for group in opt.param_groups:
+        group["lr"] = group["lr_scale"] * train_cfg["lr"]
+    for _ in range(steps):
+        opt.zero_grad()
+        compute_loss(model, x, norm.encode(target), "image", None, keep).backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), train_cfg["grad_clip"])
+        opt.step()
+    with torch.no_grad():
+        learned = model.kernels(6, model.pupils_at(torch.zeros(1, 1, 2)).flatten(0, 1), d)[0, 0, 1]
+    size_k = max(learned.shape[-1], k)
+    pad = lambda t: F.pad(t, [(size_k - t.shape[-1]) // 2] * 4)  # noqa: E731
+    return pad(learned), pad(true_k), d
+
+
+def test_a_disk_pupil_grows_into_a_larger_square_and_shrinks_to_a_smaller_hexagon():
+    """The pupil is not stuck where it starts: log-transmissions at the floor outside the start's
+    disk still learn (Adam's steps do not scale with the tiny gradient there)."""
+    learned, truth, d = _fit_one_band(ApertureModel(Polygon(4, 45.0)), 1.2, steps=120)  # corners at 1.2 radii
+    start, _, _ = _fit_one_band(ApertureModel(Polygon(4, 45.0)), 1.2, steps=0)
+    r = torch.arange(truth.shape[-1]) - truth.shape[-1] // 2
+    corners = (r[:, None] ** 2 + r[None, :] ** 2).float().sqrt() >= d / 2 + 0.75  # beyond the start disk's anti-aliased rim
+    assert float(start[corners].sum()) < 1e-3 < 0.015 < float(truth[corners].sum())
+    assert float((learned - truth).abs().sum()) <= 0.04 < 0.2 <= float((start - truth).abs().sum())
+    assert float(learned[corners].sum()) == pytest.approx(float(truth[corners].sum()), rel=0.3)
+    learned, truth, _ = _fit_one_band(ApertureModel(Polygon(6)), 0.6, steps=120)  # inside the start's disk
+    assert float((learned - truth).abs().sum()) <= 0.04

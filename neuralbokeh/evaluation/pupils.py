@@ -24,11 +24,11 @@ import numpy as np
 import torch
 
 from ..checkpoint import load_model
-from ..core.apertures import Aperture, ApertureModel
+from ..core.apertures import Aperture, ApertureModel, ViewGrid
 from ..core.apertures.spec import parse_aperture
 from ..core.cli import HelpFormatter
 from ..core.io import prepare_output, read_json, write_image
-from ..networks.lens import LensBokeh, prior_transmission
+from ..networks.lens import PUPIL_EXTENT, LensBokeh, prior_transmission, pupil_step
 
 log = logging.getLogger(__name__)
 
@@ -59,8 +59,16 @@ def pupil_sheet(panels: Sequence[np.ndarray], scale: int = 4, gap: int = 4) -> n
 
 
 def reference_panel(aperture: Aperture, size: int) -> np.ndarray:
-    """``aperture`` rasterised on a ``size``^2 pupil grid, grey ``(size, size, 3)`` in [0, 1]."""
-    t = prior_transmission(aperture, size)
+    """``aperture`` rasterised on a ``size``^2 pupil grid, grey ``(size, size, 3)`` in [0, 1]; a
+    light field's views (:class:`~neuralbokeh.core.apertures.ViewGrid`) as one sample each, the
+    points its kernels are made of."""
+    if isinstance(aperture, ViewGrid):
+        u, v, w = aperture.points()
+        to_index = lambda a: np.rint((a + PUPIL_EXTENT) / pupil_step(size)).astype(int)  # noqa: E731
+        t = np.zeros((size, size))
+        t[to_index(-v), to_index(u)] = w  # row 0 at the top (v up)
+    else:
+        t = prior_transmission(aperture, size)
     return np.repeat((t / max(float(t.max()), 1e-12))[..., None], 3, axis=2).astype(np.float32)
 
 

@@ -83,7 +83,7 @@ log = logging.getLogger(__name__)
 
 PUPIL_EXTENT = 1.25  # the pupil grid covers [-PUPIL_EXTENT, PUPIL_EXTENT]^2 aperture radii
 PUPIL_FLOOR = 1e-3  # initial transmission outside the prior's shape (log space cannot hold 0)
-SUPERSAMPLE = 4  # pupil samples per kernel pixel side (anti-aliasing)
+SUPERSAMPLE = 4  # the fewest pupil samples per kernel pixel side (anti-aliasing)
 _EPS = 1e-8
 
 
@@ -145,6 +145,19 @@ def band_scales(diameters: np.ndarray, min_px: float) -> dict[int, int]:
             s *= 2
         out[n] = s
     return out
+
+
+def supersampling(diameter_px: float, size: int) -> int:
+    """Pupil samples per kernel pixel side for a CoC of ``diameter_px`` px on a ``size`` x
+    ``size`` pupil grid: at least :data:`SUPERSAMPLE`, and at most one grid step apart.
+
+    A kernel pixel is the mean of the pupil over its footprint. Sampled more sparsely than the
+    grid, the (bilinear) samples would skip cells: at a 3 px CoC a 48^2 grid has 12 cells per
+    kernel pixel, and 4 samples leave most of them without any gradient, so training writes a
+    lattice of dots into the pupil that larger CoCs, which resolve it, then show.
+    """
+    cells_per_px = 2.0 / (max(diameter_px, _EPS) * pupil_step(size))
+    return max(SUPERSAMPLE, math.ceil(cells_per_px))
 
 
 def prior_transmission(shape: Aperture, size: int) -> np.ndarray:
@@ -348,7 +361,8 @@ class LensBokeh(nn.Module):
         scale = torch.exp(self.log_channel_scale)  # (3,)
         radius = 0.5 * float(diameter) * scale  # (3,) px
         device, dtype = pupils.device, pupils.dtype
-        offs = (torch.arange(SUPERSAMPLE, dtype=dtype, device=device) + 0.5) / SUPERSAMPLE - 0.5
+        ss = supersampling(float(diameter) * float(scale.detach().min()), cfg.pupil_size)
+        offs = (torch.arange(ss, dtype=dtype, device=device) + 0.5) / ss - 0.5
         pos = (torch.arange(-h, h + 1, dtype=dtype, device=device)[:, None] + offs).reshape(-1)
         m = pos.numel()
         u = pos[None, None, :] / radius[:, None, None] / PUPIL_EXTENT  # (3, 1, m), in grid units [-1, 1]
@@ -357,7 +371,7 @@ class LensBokeh(nn.Module):
         count = pupils.shape[0]
         pup = torch.exp(pupils).reshape(count * 2, 3, cfg.pupil_size, cfg.pupil_size).permute(1, 0, 2, 3)  # (3, M*2, P, P)
         samples = F.grid_sample(pup, grid, mode="bilinear", padding_mode="zeros", align_corners=True)  # (3, M*2, m, m)
-        kern = samples.reshape(3, count * 2, k, SUPERSAMPLE, k, SUPERSAMPLE).mean(dim=(3, 5))
+        kern = samples.reshape(3, count * 2, k, ss, k, ss).mean(dim=(3, 5))
         kern = kern.permute(1, 0, 2, 3).reshape(count, 2, 3, k, k)
         kern = kern / kern.sum(dim=(-2, -1), keepdim=True).clamp_min(_EPS)
         # in front of the focus plane the aperture's image is inverted

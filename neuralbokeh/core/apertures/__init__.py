@@ -26,10 +26,10 @@ spatially varying lens aperture). Import from here.
 """
 
 from .lens import ApertureModel, field_position
-from .raster import kernel_radius_px, pupil_grid, shape_kernel, shape_kernels
-from .shapes import SHAPE_NAMES, Aperture, Disk, Gaussian, Heart, MaskAperture, Polygon, Ring, Star, aperture_from_dict
+from .raster import kernel_radius_px, pupil_grid, shape_kernel, shape_kernel_radius_px, shape_kernels
+from .shapes import SHAPE_NAMES, Aperture, Disk, Gaussian, Heart, MaskAperture, Polygon, Ring, Star, ViewGrid, aperture_from_dict
 from .spec import parse_aperture
 
 __all__ = ["SHAPE_NAMES", "Aperture", "ApertureModel", "Disk", "Gaussian", "Heart", "MaskAperture", "Polygon", "Ring",
-           "Star", "aperture_from_dict", "field_position", "kernel_radius_px", "parse_aperture", "pupil_grid",
-           "shape_kernel", "shape_kernels"]
+           "Star", "ViewGrid", "aperture_from_dict", "field_position", "kernel_radius_px", "parse_aperture",
+           "pupil_grid", "shape_kernel", "shape_kernel_radius_px", "shape_kernels"]

@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from ..checks import check_nonnegative, check_positive
-from .raster import kernel_radius_px, shape_kernels
+from .raster import shape_kernel_radius_px, shape_kernels
 from .shapes import Aperture, Disk, aperture_from_dict
 
 
@@ -74,7 +74,7 @@ class ApertureModel:
 
     def kernel_radius_px(self, diameter_px: float) -> int:
         """Half-width of the (common) kernel for all channels at this CoC diameter."""
-        return kernel_radius_px(diameter_px * max(self.channel_scale))
+        return shape_kernel_radius_px(self.shape, diameter_px * max(self.channel_scale))
 
     def kernels(self, diameter_px: float, field_xy: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
         """Per-channel kernels at a CoC diameter and one field position.

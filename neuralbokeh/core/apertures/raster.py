@@ -8,7 +8,7 @@ import math
 import numpy as np
 
 from ..checks import check_nonnegative
-from .shapes import Aperture
+from .shapes import Aperture, ViewGrid
 
 
 def pupil_grid(shape: Aperture, n: int, rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -29,6 +29,9 @@ def pupil_grid(shape: Aperture, n: int, rng: np.random.Generator | None = None) 
     """
     if int(n) != n or n < 1:
         raise ValueError(f"pupil grid size must be an integer >= 1, got {n!r}")
+    if isinstance(shape, ViewGrid):  # a light field's aperture is its views: no other point of the pupil
+        u, v, w = shape.points()
+        return np.stack([u, v], axis=1), w
     cell = np.arange(n, dtype=np.float64)
     if rng is None:
         u, v = np.meshgrid(cell + 0.5, cell + 0.5)
@@ -44,6 +47,34 @@ def pupil_grid(shape: Aperture, n: int, rng: np.random.Generator | None = None) 
 def kernel_radius_px(diameter_px: float) -> int:
     """Half-width h of the ``(2h+1, 2h+1)`` kernel for a CoC diameter (px)."""
     return max(0, math.ceil(diameter_px / 2.0 - 0.5))
+
+
+def shape_kernel_radius_px(shape: Aperture, diameter_px: float) -> int:
+    """Half-width of ``shape``'s kernel at a CoC diameter (px): :func:`kernel_radius_px`, one
+    more for a :class:`ViewGrid` out of focus (its outermost views' bilinear splats)."""
+    h = kernel_radius_px(diameter_px)
+    return h + 1 if isinstance(shape, ViewGrid) and h > 0 else h
+
+
+def _view_kernels(shape: ViewGrid, diameter_px: float, centers: np.ndarray | None, clip_radius: float) -> np.ndarray:
+    """:func:`shape_kernels` of a light field's views: each view's point splatted bilinearly."""
+    u, v, w = shape.points()
+    h = shape_kernel_radius_px(shape, diameter_px)
+    k, r = 2 * h + 1, diameter_px / 2.0
+    x, y = h + r * u, h - r * v  # kernel pixel coordinates: rows go down, v goes up
+    x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
+    fx, fy = x - x0, y - y0
+    keeps = [np.ones_like(w)] if centers is None else [((u - cu) ** 2 + (v - cv) ** 2 <= clip_radius**2).astype(np.float64)
+                                                       for cu, cv in centers]
+    kern = np.zeros((len(keeps), k, k))
+    for i, keep in enumerate(keeps):
+        for dy, wy in ((0, 1.0 - fy), (1, fy)):
+            for dx, wx in ((0, 1.0 - fx), (1, fx)):
+                np.add.at(kern[i], (np.minimum(y0 + dy, k - 1), np.minimum(x0 + dx, k - 1)), w * keep * wy * wx)
+    total = kern.sum(axis=(1, 2))
+    if (total <= 0).any():
+        raise ValueError(f"the cat-eye's circle (radius {clip_radius}) lets none of the {len(w)} views through")
+    return kern / total[:, None, None]
 
 
 def _auto_supersample(diameter_px: float) -> int:
@@ -85,6 +116,8 @@ def shape_kernels(
     h = kernel_radius_px(diameter_px)
     if h == 0:
         return np.ones((m, 1, 1))
+    if isinstance(shape, ViewGrid):
+        return _view_kernels(shape, diameter_px, centers, clip_radius)
     s = supersample or _auto_supersample(diameter_px)
     r = diameter_px / 2.0
     # Sample positions (in px from the centre) on a regular s x s grid inside each pixel.

@@ -194,20 +194,73 @@ class MaskAperture(Aperture):
         return isinstance(other, MaskAperture) and self._key() == other._key()
 
     def transmission(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-        h, w = self.mask.shape
-        col = np.floor((u + 1.0) * 0.5 * w).astype(np.int64)
-        row = np.floor((1.0 - v) * 0.5 * h).astype(np.int64)
-        ok = (col >= 0) & (col < w) & (row >= 0) & (row < h)
-        out = np.zeros(np.broadcast(u, v).shape, dtype=np.float64)
-        out[ok] = self.mask[np.broadcast_to(row, out.shape)[ok], np.broadcast_to(col, out.shape)[ok]]
-        return out
+        return _cell_lookup(self.mask, u, v)
 
     def to_dict(self) -> dict[str, Any]:
         q = np.round(self.mask * 255.0).astype(np.uint8)
         return {"shape": self.name, "size": list(q.shape), "data_b64": base64.b64encode(q.tobytes()).decode()}
 
 
-_SHAPES: dict[str, type[Aperture]] = {c.name: c for c in (Disk, Polygon, Heart, Ring, Star, Gaussian, MaskAperture)}
+def _cell_lookup(table: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """``table`` ``(H, W)`` (row 0 at v = +1) as cells covering the pupil square, at ``(u, v)``."""
+    h, w = table.shape
+    col = np.floor((u + 1.0) * 0.5 * w).astype(np.int64)
+    row = np.floor((1.0 - v) * 0.5 * h).astype(np.int64)
+    ok = (col >= 0) & (col < w) & (row >= 0) & (row < h)
+    out = np.zeros(np.broadcast(u, v).shape, dtype=np.float64)
+    out[ok] = table[np.broadcast_to(row, out.shape)[ok], np.broadcast_to(col, out.shape)[ok]]
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class ViewGrid(Aperture):
+    """The aperture of a shift-and-add refocus of an N x N grid of pinhole views (a light
+    field): a point of the pupil square at each view's cell centre, weighted.
+
+    Args:
+        weights: ``(N, N)`` view weights in [0, 1], row 0 at the top (v = +1), not all zero.
+
+    Its kernels are the points splatted bilinearly (:func:`~neuralbokeh.core.apertures.shape_kernels`),
+    which is what averaging bilinearly shifted views does: once the views' shifts are a pixel
+    apart or more (a CoC of N px), the refocus is N x N copies of the image, which no shape with
+    an area makes. Ray-traced renderers take the points themselves. :meth:`transmission`
+    (pictures of the pupil, a network's starting pupil) gives each view its cell, the
+    sub-aperture it stands for.
+    """
+
+    weights: np.ndarray = field(default_factory=lambda: np.ones((1, 1)))
+    name: ClassVar[str] = "views"
+
+    def __post_init__(self) -> None:
+        w = np.asarray(self.weights, dtype=np.float64)
+        if w.ndim != 2 or w.shape[0] != w.shape[1] or w.shape[0] < 1:
+            raise ValueError(f"view weights must be a square (N, N) array, got shape {w.shape}")
+        check_in_range("view weights", w, 0.0, 1.0)
+        if not w.any():
+            raise ValueError("view weights are all zero: no view would count")
+        object.__setattr__(self, "weights", w)
+
+    def __hash__(self) -> int:
+        return hash(self.weights.tobytes())
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, ViewGrid) and np.array_equal(self.weights, other.weights)
+
+    def points(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The views that count: their pupil positions ``u`` (right), ``v`` (up) in [-1, 1] and
+        weights, each ``(M,)``."""
+        n = self.weights.shape[0]
+        rows, cols = np.nonzero(self.weights)
+        return (2.0 * cols + 1.0) / n - 1.0, 1.0 - (2.0 * rows + 1.0) / n, self.weights[rows, cols]
+
+    def transmission(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        return _cell_lookup(self.weights, u, v)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"shape": self.name, "weights": self.weights.tolist()}
+
+
+_SHAPES: dict[str, type[Aperture]] = {c.name: c for c in (Disk, Polygon, Heart, Ring, Star, Gaussian, MaskAperture, ViewGrid)}
 SHAPE_NAMES = tuple(_SHAPES)
 
 
