@@ -175,11 +175,11 @@ def discrete_aperture(weights: np.ndarray, signs: tuple[int, int], cat_eye: floa
     the pupil (row 0 at v = +1), each view a point (:class:`~neuralbokeh.core.apertures.ViewGrid`)."""
     u, v = pupil_of_views(weights.shape[0], signs)
     n = weights.shape[0]
-    mask = np.zeros_like(weights, dtype=np.float64)
+    placed = np.zeros_like(weights, dtype=np.float64)
     rows = np.rint((1.0 - v) * n / 2.0 - 0.5).astype(int)
     cols = np.rint((u + 1.0) * n / 2.0 - 0.5).astype(int)
-    mask[rows, cols] = weights / weights.max()
-    return ApertureModel(ViewGrid(mask), cat_eye=cat_eye)
+    placed[rows, cols] = weights / weights.max()
+    return ApertureModel(ViewGrid(placed), cat_eye=cat_eye)
 
 
 def refocus(views: np.ndarray, d0: float, signs: tuple[int, int], weights: np.ndarray | None = None,

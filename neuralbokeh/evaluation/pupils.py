@@ -64,9 +64,10 @@ def reference_panel(aperture: Aperture, size: int) -> np.ndarray:
     points its kernels are made of."""
     if isinstance(aperture, ViewGrid):
         u, v, w = aperture.points()
-        to_index = lambda a: np.rint((a + PUPIL_EXTENT) / pupil_step(size)).astype(int)  # noqa: E731
+        rows = np.rint((PUPIL_EXTENT - v) / pupil_step(size)).astype(int)  # row 0 at the top (v up)
+        cols = np.rint((u + PUPIL_EXTENT) / pupil_step(size)).astype(int)
         t = np.zeros((size, size))
-        t[to_index(-v), to_index(u)] = w  # row 0 at the top (v up)
+        t[rows, cols] = w
     else:
         t = prior_transmission(aperture, size)
     return np.repeat((t / max(float(t.max()), 1e-12))[..., None], 3, axis=2).astype(np.float32)
