@@ -8,7 +8,7 @@ Makes (once) ``--scenes`` synthetic scenes x 4 slices at ``--size`` (7-blade ape
 0.6; f-number chosen so that the largest |CoC| is >= 40 px at 1080p), 25 % of the scenes held
 out. Trains the default lens network in a child process (``train.py``, so its peak RSS is the
 child's own) on random ``--crop``^2 crops for ``--minutes`` of wall time (tiles of 128 + 32 px:
-the overlap covers the largest CoC radius; each crop reads only its rows, unless ``--cache``
+the overlap covers the largest CoC radius; each crop reads only its tiles of the scene files, unless ``--cache``
 keeps the scenes in memory). Then scores the held-out scenes, in the training
 metric (PSNR/SSIM of the normalised images mapped to [0, 1]), as three plate formats:
 

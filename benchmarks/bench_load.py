@@ -12,7 +12,8 @@ Then the whole compositing CLI on that frame, one frame per process as a render-
 it (load + read + render + write, ``--graph-optimization auto``), against the render alone: the
 frame as an EXR plate, the same colours as a premultiplied render with alpha 1 everywhere (so
 every tile goes through the network) and its CoC map as ``--depth-math coc``. The CLI renders
-the colour and its alpha together (a batch of two), so its render is about two of the row above.
+the colour, its alpha and a uniform field together (a batch of three), so its render is about three
+of the row above.
 """
 
 from __future__ import annotations

@@ -65,10 +65,13 @@ class TracedPlate(nn.Module):
         self.blocks, self.diameters = self.plan.blocks, self.plan.diameters
         with torch.no_grad():
             pupils = model.tile_pupils(self.lay, h, w)[0]
+            drift = model.centroid_drift(self.lay, h, w)[0]
             for n in range(1, self.blocks + 1):
                 kern = reduce_kernel(model.kernels(n, pupils, float(self.diameters[n])), scales[n])  # (T, 2, 3, k, k)
+                gains = model.colour_gains(drift, float(self.diameters[n]))  # (T, 2, 3)
                 for side in range(2):
-                    k6 = torch.cat([kern[:, side], kern[:, side]], dim=1).flip(-2, -1)  # correlation weights
+                    colour = kern[:, side] * gains[:, side, :, None, None]
+                    k6 = torch.cat([colour, kern[:, side]], dim=1).flip(-2, -1)  # correlation weights
                     self.register_buffer(f"w{n}_{side}", k6.reshape(-1, 1, *k6.shape[-2:]).contiguous())
         self.register_buffer("src", torch.from_numpy(self.lay.source_masks())[:, None])
 

@@ -110,3 +110,23 @@ def test_data_windows_round_trip_and_place(tmp_path):
     assert (place(img, (-1, 4, 3, 2), (10, 10, 2, 2), fill=7.0) == 7.0).all()  # no overlap at all
     with pytest.raises(ValueError, match="data window"):
         write_image(tmp_path / "bad.exr", img, windows=((0, 0, 4, 2), (0, 0, 8, 6)))
+
+
+@pytest.mark.parametrize("name, tile", [("scan.exr", None), ("tiled.exr", 32), ("tiled.tif", 16)])
+def test_a_region_reads_as_the_same_pixels_from_scanline_and_tiled_files(tmp_path, name, tile):
+    """Rows x cols of a file read alone equal the whole image cut there, at tile-unaligned edges
+    and at the image's last, partial tile."""
+    import OpenImageIO as oiio
+
+    img = np.random.default_rng(1).random((97, 150, 3)).astype(np.float32) * 100
+    path = write_image(tmp_path / name, img, tile=tile)
+    assert oiio.ImageInput.open(str(path)).spec().tile_width == (tile or 0)
+    for rows, cols in [((33, 90), (17, 141)), ((64, 97), (128, 150)), ((0, 1), (149, 150)), (None, (5, 6))]:
+        want = img[slice(*rows) if rows else slice(None), slice(*cols)]
+        assert np.array_equal(read_image(path, rows=rows, cols=cols), want), (rows, cols)
+    with pytest.raises(ValueError, match=r"cols \(140, 151\) are outside .*150x97 px"):
+        read_image(path, rows=(0, 5), cols=(140, 151))
+    with pytest.raises(ValueError, match="tile must be a multiple of 16 px for an .exr or .tif file, got 20"):
+        write_image(tmp_path / "x.exr", img, tile=20)
+    with pytest.raises(ValueError, match="got 32 for x.png"):
+        write_image(tmp_path / "x.png", img, tile=32)

@@ -102,6 +102,7 @@ def write_image(
     channel_names: list[str] | None = None,
     pixel_type: str = "float32",
     windows: tuple[Window, Window] | None = None,
+    tile: int | None = None,
 ) -> Path:
     """Write an image atomically; the format comes from the extension (.exr, .tif, .png, ...).
 
@@ -115,6 +116,9 @@ def write_image(
         pixel_type: one of ``float32``, ``float16``, ``uint8``, ``uint16``.
         windows: ``(data window, display window)`` (see :func:`image_windows`); the data
             window's size must be the image's (default: both ``(0, 0, W, H)``).
+        tile: store the pixels in ``tile`` x ``tile`` px tiles (EXR and TIFF) instead of
+            scanlines, so that :func:`read_image` decodes a crop's tiles only, not its whole
+            rows (training sets); default scanlines (what compositing applications read fastest).
 
     Returns:
         The path written.
@@ -151,6 +155,10 @@ def write_image(
         spec.x, spec.y, spec.full_x, spec.full_y, spec.full_width, spec.full_height = x, y, fx, fy, fw, fh
     if path.suffix.lower() == ".exr":
         spec.attribute("compression", "zip")
+    if tile is not None:
+        if path.suffix.lower() not in (".exr", ".tif", ".tiff") or tile < 16 or tile % 16:
+            raise ValueError(f"tile must be a multiple of 16 px for an .exr or .tif file, got {tile} for {path.name}")
+        spec.tile_width = spec.tile_height = int(tile)
     for key, value in (attributes or {}).items():
         if isinstance(value, tuple) and len(value) == 2 and isinstance(value[0], oiio.TypeDesc):
             spec.attribute(key, value[0], value[1])  # typed, as image_attributes reads them (a timecode, say)
@@ -244,44 +252,61 @@ def place(image: np.ndarray, data: Window, window: Window, fill: float = 0.0) ->
 
 
 def read_image(path: str | os.PathLike, with_attributes: bool = False, rows: tuple[int, int] | None = None,
-               channels: list[str] | None = None) -> Any:
+               channels: list[str] | None = None, cols: tuple[int, int] | None = None) -> Any:
     """Read an image as float32 ``(H, W, C)`` (integer files scaled to [0, 1] by OpenImageIO).
 
     Args:
         path: any format OpenImageIO reads.
         with_attributes: also return the header metadata as a dict.
-        rows: ``(r0, r1)``: read only these scanlines (``(r1 - r0, W, C)``; an EXR decodes
-            only the blocks holding them: a training crop costs its rows, not the frame).
+        rows: ``(r0, r1)``: read only these rows, counted from the data window's top.
         channels: the channels to return, by name, in this order (default: all of them).
+        cols: ``(c0, c1)``: keep only these columns. A tiled file (``write_image(tile=...)``)
+            decodes only the tiles holding ``rows`` x ``cols``; a scanline file decodes whole
+            rows (EXR: only the blocks holding ``rows``).
 
     Returns:
-        The array, or ``(array, attributes)``.
+        The array ``(r1 - r0, c1 - c0, C)``, or ``(array, attributes)``.
 
     Raises:
         FileNotFoundError: no such file.
+        ValueError: ``rows`` or ``cols`` outside the image, or a channel it lacks.
         OSError: OpenImageIO cannot read it (its message included).
     """
     path = Path(path)
     with _image_input(path) as inp:
         spec = inp.spec()
-        r0, r1 = (0, spec.height) if rows is None else rows
-        if not 0 <= r0 < r1 <= spec.height:
-            raise ValueError(f"rows {rows} are outside {path}'s {spec.height} rows")
-        if rows is None:
-            arr = inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT)
-        else:
-            arr = inp.read_scanlines(0, 0, spec.y + r0, spec.y + r1, 0, 0, spec.nchannels, oiio.FLOAT)
+        (r0, r1), (c0, c1) = rows or (0, spec.height), cols or (0, spec.width)
+        if not (0 <= r0 < r1 <= spec.height and 0 <= c0 < c1 <= spec.width):
+            raise ValueError(f"rows {rows}, cols {cols} are outside {path}'s {spec.width}x{spec.height} px")
+        arr, (r, c) = _read_region(inp, spec, (r0, r1), (c0, c1))
         if arr is None:
             raise OSError(f"cannot read {path}: {inp.geterror()}")
         attrs = {a.name: a.value for a in spec.extra_attribs} if with_attributes else None
         names = list(spec.channelnames)
-    arr = np.asarray(arr, dtype=np.float32).reshape(r1 - r0, spec.width, spec.nchannels)
+    arr = np.asarray(arr, dtype=np.float32).reshape(r[1] - r[0], c[1] - c[0], spec.nchannels)
+    arr = arr[r0 - r[0]:r1 - r[0], c0 - c[0]:c1 - c[0]]
     if channels is not None:
-        missing = [c for c in channels if c not in names]
+        missing = [ch for ch in channels if ch not in names]
         if missing:
             raise ValueError(f"{path} has no channel {missing[0]!r}; its channels: {', '.join(names)}")
-        arr = np.ascontiguousarray(arr[:, :, [names.index(c) for c in channels]])
+        arr = arr[:, :, [names.index(ch) for ch in channels]]
+    arr = np.ascontiguousarray(arr)
     return (arr, attrs) if with_attributes else arr
+
+
+def _read_region(inp: Any, spec: Any, rows: tuple[int, int], cols: tuple[int, int]) -> tuple[Any, tuple]:
+    """The smallest block OpenImageIO can decode that holds ``rows`` x ``cols`` (whole tiles of
+    a tiled file, whole rows of a scanline one), with the rows and columns it spans."""
+    if (rows, cols) == ((0, spec.height), (0, spec.width)):
+        return inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT), (rows, cols)
+    if spec.tile_width and spec.tile_height:
+        tw, th = spec.tile_width, spec.tile_height
+        r = (rows[0] // th * th, min(-(-rows[1] // th) * th, spec.height))
+        c = (cols[0] // tw * tw, min(-(-cols[1] // tw) * tw, spec.width))
+        return inp.read_tiles(0, 0, spec.x + c[0], spec.x + c[1], spec.y + r[0], spec.y + r[1], 0, 1,
+                              0, spec.nchannels, oiio.FLOAT), (r, c)
+    return inp.read_scanlines(0, 0, spec.y + rows[0], spec.y + rows[1], 0, 0, spec.nchannels, oiio.FLOAT), \
+        (rows, (0, spec.width))
 
 
 def write_json(path: str | os.PathLike, data: Any) -> Path:

@@ -334,11 +334,14 @@ class _LensExport:
     def graph(self, fp16: bool, opset: int, props: dict[str, str]) -> onnx.ModelProto:
         m, d = self.model, self.plan.diameters
         with torch.no_grad():
-            pupils = m.tile_pupils(m.config.layout(*m.contract.size), *m.contract.size, self.window)[0]
+            layout = m.config.layout(*m.contract.size)
+            pupils = m.tile_pupils(layout, *m.contract.size, self.window)[0]
+            drift = m.centroid_drift(layout, *m.contract.size, self.window)[0]
             band_kernels = {n: reduce_kernel(m.kernels(n, pupils, float(d[n])).double(), self.scales[n]).numpy()
                             for n in range(1, m.config.blocks + 1)}
+            gains = {n: m.colour_gains(drift, float(d[n])).double().numpy() for n in range(1, m.config.blocks + 1)}
         return build_lens_graph(band_kernels, self.plan, m.config, m.contract, fp16, opset, props, self.scales,
-                                self.spec.rows)
+                                self.spec.rows, gains)
 
     def reference(self, x: torch.Tensor, active: torch.Tensor) -> torch.Tensor:
         """The PyTorch function of the exported kernels (coarse grids included) on the

@@ -218,11 +218,13 @@ def conv_rows(g: Nodes, feats: str, weights: np.ndarray, size: int, fp16: bool) 
 
 
 def _band(b: GraphBuilder, k: int, n: int, side: int, pos: str, side_mask: str, src_mask: str, rgb: str, c: str,
-          kernel: np.ndarray, scale: int, win: int, band_coc: float, margin: float, fp16: bool, rows: bool) -> onnx.GraphProto:
+          kernel: np.ndarray, gain: np.ndarray, scale: int, win: int, band_coc: float, margin: float, fp16: bool,
+          rows: bool) -> onnx.GraphProto:
     """Then-branch: band ``n``'s contribution ``(1, B, 3, 6, win, win)``, (near, same, far) x (RGB, coverage),
     its convolution on a grid ``scale`` times coarser when ``scale > 1`` (``kernel`` is then
     the binned one, :func:`~neuralbokeh.networks.lens.reduce_kernel`), by rows
-    (:func:`conv_rows`) or one depthwise ``Conv``."""
+    (:func:`conv_rows`) or one depthwise ``Conv``; the colour's kernels times ``gain`` ``(3,)``
+    (:meth:`~neuralbokeh.networks.lens.LensBokeh.colour_gains`)."""
     g = Nodes(GraphBuilder(b.count), f"t{k}.n{n}s{side}")
     one = g.c("one", 1.0)
     hat = g.op("Relu", g.op("Sub", one, g.op("Abs", g.op("Sub", pos, g.c(f"n{n}", float(n))))))
@@ -232,7 +234,7 @@ def _band(b: GraphBuilder, k: int, n: int, side: int, pos: str, side_mask: str, 
         extra = -(-win // scale) * scale - win
         feats = g.op("AveragePool", feats, kernel_shape=[scale, scale], strides=[scale, scale], pads=[0, 0, extra, extra],
                      count_include_pad=1)
-    w = np.concatenate([kernel, kernel])[:, None, ::-1, ::-1]  # (6, 1, k, k), correlation weights
+    w = np.concatenate([kernel * gain[:, None, None], kernel])[:, None, ::-1, ::-1]  # (6, 1, k, k), correlation weights
     p = kernel.shape[-1] // 2
     if rows:
         out = conv_rows(g, feats, w, -(-win // scale), fp16)
@@ -258,8 +260,9 @@ def _band(b: GraphBuilder, k: int, n: int, side: int, pos: str, side_mask: str, 
     return _branch(g, g.op("Mul", weights, g.op("Unsqueeze", out, g.c("ax02", [0, 2], np.int64))), f"t{k}_band{n}_{side}")
 
 
-def _tile(b: GraphBuilder, k: int, window: str, kernels: Mapping[int, np.ndarray], scales: Mapping[int, int], src: np.ndarray,
-          cfg: ModelConfig, contract: Contract, plan: BandPlan, fp16: bool, rows: bool) -> onnx.GraphProto:
+def _tile(b: GraphBuilder, k: int, window: str, kernels: Mapping[int, np.ndarray], gains: Mapping[int, np.ndarray],
+          scales: Mapping[int, int], src: np.ndarray, cfg: ModelConfig, contract: Contract, plan: BandPlan, fp16: bool,
+          rows: bool) -> onnx.GraphProto:
     """Then-branch: tile ``k``'s accumulators ``(B, 3, 6, win, win)``, flattened to ``(1, B 18 win^2)``,
     from the outer ``window``; band ``n``, side ``s`` runs where ``band_active[k, n - 1, s]``. A
     band that does not run gives an empty ``(0, B, 3, 6, win, win)``, so the sum over the bands
@@ -289,7 +292,7 @@ def _tile(b: GraphBuilder, k: int, window: str, kernels: Mapping[int, np.ndarray
         for n in range(1, blocks + 1):
             for side, (mask, sign) in enumerate(((behind, 1.0), (front, -1.0))):
                 used = g.op("Gather", g.op("Gather", flags, g.c(f"n{n}_row", n - 1, np.int64)), g.c(f"side{side}", side, np.int64))
-                then = _band(g.b, k, n, side, pos, mask, src_mask, rgb, c, kernels[n][side], scales.get(n, 1), win,
+                then = _band(g.b, k, n, side, pos, mask, src_mask, rgb, c, kernels[n][side], gains[n][side], scales.get(n, 1), win,
                              sign * float(diameters[n]), float(cfg.occlusion_margin_px), fp16, rows)
                 skip = Nodes(GraphBuilder(g.b.count), f"t{k}.n{n}s{side}.skip")
                 empty = skip.op("Slice", base, skip.c("s0", [0], np.int64), skip.c("s0", [0], np.int64), skip.c("ax0", [0], np.int64))
@@ -343,7 +346,8 @@ def _composite_buckets(top: Nodes, canvas: str, x: str, cfg: ModelConfig, contra
 
 def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: ModelConfig, contract: Contract,
                      fp16: bool = False, opset: int = 18, metadata: Mapping[str, str] | None = None,
-                     scales: Mapping[int, int] | None = None, rows: bool = False) -> onnx.ModelProto:
+                     scales: Mapping[int, int] | None = None, rows: bool = False,
+                     gains: Mapping[int, np.ndarray] | None = None) -> onnx.ModelProto:
     """The full-image ONNX model of a ``LensBokeh``.
 
     Args:
@@ -358,6 +362,8 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: Mod
         scales: ``{n: s}`` band n convolved on a grid s times coarser (default: all 1, direct).
         rows: the band convolutions as row GEMMs (:func:`conv_rows`; exact to float
             rounding, faster) instead of depthwise ``Conv`` nodes.
+        gains: ``{n: (tiles, 2, 3)}`` what band n's scattered colour is multiplied by
+            (``LensBokeh.colour_gains``; default all 1).
     """
     if opset < 18:
         raise ValueError(f"the lens graph needs opset >= 18 (Col2Im), got {opset}")
@@ -378,7 +384,8 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: Mod
                         b.const(f"t{k}.ends", [r + win, c + win], np.int64), b.const("axes_hw", [2, 3], np.int64))
         cond = top.op("Gather", "tile_active", b.const(f"t{k}.index", k, np.int64))
         tile_kernels = {n: kernels[n][k] for n in kernels}
-        then = _tile(b, k, window, tile_kernels, scales, source_masks[k], cfg, contract, plan, fp16, rows)
+        tile_gains = {n: np.ones((2, 3)) if gains is None else gains[n][k] for n in kernels}
+        then = _tile(b, k, window, tile_kernels, tile_gains, scales, source_masks[k], cfg, contract, plan, fp16, rows)
         b.count += 10_000  # branch-local names stay unique across branches
         other = _passthrough(b, k, window, source_masks[k], contract.normalization)
         b.count += 10_000

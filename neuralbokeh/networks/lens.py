@@ -82,6 +82,7 @@ from .config import ModelConfig
 log = logging.getLogger(__name__)
 
 PUPIL_EXTENT = 1.25  # the pupil grid covers [-PUPIL_EXTENT, PUPIL_EXTENT]^2 aperture radii
+FIELD_DELTA = 0.05  # field units (the sensor's half-width = 1) of the centroid drift's central difference
 PUPIL_FLOOR = 1e-3  # initial transmission outside the prior's shape (log space cannot hold 0)
 SUPERSAMPLE = 4  # the fewest pupil samples per kernel pixel side (anti-aliasing)
 _EPS = 1e-8
@@ -256,6 +257,15 @@ def field_positions(layout: TileLayout, height: int, width: int, window: torch.T
     return torch.stack([x, y], dim=-1) * 2.0 - 1.0
 
 
+def pupil_centroids(pupils: torch.Tensor) -> torch.Tensor:
+    """``(..., 2)``: the centroid (x right, y down; aperture radii) of the transmission of each
+    log-pupil ``(..., P, P)``: where a kernel's light lands on average, in radii of its CoC."""
+    t = torch.exp(pupils)
+    axis = torch.linspace(-PUPIL_EXTENT, PUPIL_EXTENT, t.shape[-1], dtype=t.dtype, device=t.device)
+    total = t.sum(dim=(-2, -1)).clamp_min(_EPS)
+    return torch.stack([(t.sum(-2) * axis).sum(-1) / total, (t.sum(-1) * axis).sum(-1) / total], dim=-1)
+
+
 class LensBokeh(nn.Module):
     """The default network (see the module doc). Built from a :class:`~neuralbokeh.networks.ModelConfig`.
 
@@ -336,6 +346,38 @@ class LensBokeh(nn.Module):
             raise ValueError(f"window must have shape ({batch}, 4) or (1, 4): (left, top, width, height), got {tuple(window.shape)}")
         window = window.expand(batch, 4)
         return self.pupils_at(field_positions(layout, height, width, window.to(device=device, dtype=dtype)))
+
+    def centroid_drift(self, layout: TileLayout, height: int, width: int, window: torch.Tensor | None = None,
+                       batch: int = 1) -> torch.Tensor:
+        """``(B, tiles, 2, 3)``: the divergence of the pupils' centroid across the frame at each
+        tile (side, channel), ``d mu_x / d col + d mu_y / d row`` in aperture radii per px.
+
+        Where the pupil changes over the field (a cat-eye), a blur's centroid drifts by its radius
+        times :func:`pupil_centroids`, so defocused light flows across the frame: a plane of one
+        colour comes out brighter where the flow converges. A tile's pupil is constant over the
+        tile; this slope gives back the flow's first-order effect (:meth:`colour_gains`)."""
+        device, dtype = self.pupil_shared.device, self.pupil_shared.dtype
+        if window is None:
+            window = torch.tensor([[0.0, 0.0, 1.0, 1.0]], device=device, dtype=dtype)
+        window = window.to(device=device, dtype=dtype).expand(batch, 4)
+        pos = field_positions(layout, height, width, window)  # (B, T, 2)
+        slopes = []
+        for axis in range(2):  # x, then y
+            step = torch.zeros(2, device=device, dtype=dtype)
+            step[axis] = FIELD_DELTA
+            ahead, behind = pupil_centroids(self.pupils_at(pos + step)), pupil_centroids(self.pupils_at(pos - step))
+            slopes.append((ahead[..., axis] - behind[..., axis]) / (2.0 * FIELD_DELTA))
+        per_px = 2.0 * window[:, 2:] / torch.tensor([float(width), float(height)], device=device, dtype=dtype)  # field / px
+        return slopes[0] * per_px[:, 0, None, None, None] + slopes[1] * per_px[:, 1, None, None, None]
+
+    def colour_gains(self, drift: torch.Tensor, diameter: float) -> torch.Tensor:
+        """``(M, 2, 3)``: what band ``diameter``'s scattered colour is multiplied by, ``1 - div m``
+        for the drift ``m`` of its light (:meth:`centroid_drift` ``(M, 2, 3)`` times the CoC
+        radius, point-reflected in front of the focus). Coverage is geometric and keeps 1, as in
+        the reference scatter (:mod:`neuralbokeh.render.scatter`)."""
+        radius = 0.5 * float(diameter) * torch.exp(self.log_channel_scale)  # (3,) px
+        sign = torch.tensor([[1.0], [-1.0]], dtype=drift.dtype, device=drift.device)  # behind, in front
+        return 1.0 - sign * radius * drift
 
     def pupils_at(self, pos: torch.Tensor) -> torch.Tensor:
         """Log-transmissions ``(B, T, 2, 3, P, P)`` of the pupils at sensor positions ``pos``
@@ -426,6 +468,8 @@ class LensBokeh(nn.Module):
         shared = window is None or bool((window == window[:1]).all())
         pupils = self.tile_pupils(layout, height, width, None if window is None else window[:1] if shared else window,
                                   1 if shared else b).flatten(0, 1)  # (B' T, 2, 3, P, P)
+        drift = self.centroid_drift(layout, height, width, None if window is None else window[:1] if shared else window,
+                                    1 if shared else b).flatten(0, 1)  # (B' T, 2, 3)
         coc_flat = coc.reshape(b * n_t, win, win)
         rgb_flat = rgb.reshape(b * n_t, 3, win, win)
         scales = scales or {}
@@ -440,10 +484,12 @@ class LensBokeh(nn.Module):
                 if idx.numel() == 0:
                     continue  # no pixel of any tile uses this band on this side: nothing computed
                 # each distinct pupil's kernels once per band, both sides (shared: one set for every image)
-                kern = self.kernels(n, pupils, float(diameters[n])) if kern is None else kern
+                if kern is None:
+                    kern, gains = self.kernels(n, pupils, float(diameters[n])), self.colour_gains(drift, float(diameters[n]))
+                which = idx % n_t if shared else idx
                 w = gs.reshape(b * n_t, 1, win, win)[idx]
-                feats = torch.cat([rgb_flat[idx] * w, w], dim=1)  # (M, 4, win, win)
-                out = _scatter(feats, kern[:, side], idx % n_t if shared else idx, scales.get(n, 1))
+                feats = torch.cat([rgb_flat[idx] * w * gains[which, side, :, None, None], w], dim=1)  # (M, 4, win, win)
+                out = _scatter(feats, kern[:, side], which, scales.get(n, 1))
                 bw = bucket_weights(sign * float(diameters[n]), coc_flat[idx], cfg.occlusion_margin_px)
                 contrib = bw.permute(1, 0, 2, 3).unsqueeze(2) * out.unsqueeze(1)  # (M, 3, 6, win, win)
                 # one band at a time: memory stays O(image), not O(image x bands)

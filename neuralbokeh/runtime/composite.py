@@ -315,13 +315,18 @@ def composite_frame(model: OnnxBokeh, plate: np.ndarray, render: np.ndarray, dep
     colour = render if premultiplied else render * alpha[:, :, None]
     if erode_px or feather_px:  # the colour follows the matte it is cut by
         colour = colour * (a / np.maximum(alpha, 1e-12))[:, :, None]
-    # one batch of two: the light and its coverage, scattered by the same kernels
-    layers = np.stack([colour, np.repeat(a[:, :, None], 3, axis=2)]).astype(np.float32)
+    # one batch of three: the light, its coverage and a uniform field, scattered by the same
+    # kernels. Where the lens's pupil changes over the field (a cat-eye) defocused light drifts
+    # and a plane of one colour comes out brighter or darker; coverage is geometric, so it is
+    # divided by the uniform field's scatter, as the reference scatter does
+    ones = np.ones_like(colour)
+    layers = np.stack([colour, np.repeat(a[:, :, None], 3, axis=2), ones]).astype(np.float32)
     if focus_m is None:
         blurred = model.render_coc(layers, depth, clamp_coc=clamp_coc)
     else:
         blurred = model.render(layers, depth, focus_m, clamp_coc=clamp_coc, window=window)
-    cover = np.clip(blurred[1], 0.0, 1.0)  # per channel: a lens with chromatic blur spreads each its own way
+    # per channel: a lens with chromatic blur spreads each its own way
+    cover = np.clip(blurred[1] / np.maximum(blurred[2], 1e-6), 0.0, 1.0)
     return (blurred[0] + (1.0 - cover) * plate).astype(np.float32)
 
 
