@@ -65,20 +65,20 @@ class TracedPlate(nn.Module):
         self.blocks, self.diameters = self.plan.blocks, self.plan.diameters
         with torch.no_grad():
             pupils = model.tile_pupils(self.lay, h, w)[0]
-            drift = model.centroid_drift(self.lay, h, w)[0]
+            drift = tile(model.drift_map(h, w).flatten(1, 2), self.lay)  # (1, T 6, win, win)
+            self.register_buffer("drift", drift.view(-1, 2, 3, *drift.shape[-2:]))  # (T, 2, 3, win, win)
             for n in range(1, self.blocks + 1):
                 kern = reduce_kernel(model.kernels(n, pupils, float(self.diameters[n])), scales[n])  # (T, 2, 3, k, k)
-                gains = model.colour_gains(drift, float(self.diameters[n]))  # (T, 2, 3)
                 for side in range(2):
-                    colour = kern[:, side] * gains[:, side, :, None, None]
-                    k6 = torch.cat([colour, kern[:, side]], dim=1).flip(-2, -1)  # correlation weights
+                    k6 = torch.cat([kern[:, side], kern[:, side]], dim=1).flip(-2, -1)  # correlation weights
                     self.register_buffer(f"w{n}_{side}", k6.reshape(-1, 1, *k6.shape[-2:]).contiguous())
         self.register_buffer("src", torch.from_numpy(self.lay.source_masks())[:, None])
 
     def band(self, acc, rgb, c, pos, n: int, side: int):
         t, win = rgb.shape[0], rgb.shape[-1]
         gs = _gate(pos, n) * self.src[:, 0] * ((c > 0) if side == 0 else (c < 0)).to(rgb.dtype)  # (T, win, win)
-        feats = torch.cat([rgb * gs[:, None], gs[:, None].expand(-1, 3, -1, -1)], dim=1).reshape(1, t * 6, win, win)
+        gains = self.model.colour_gains(self.drift, float(self.diameters[n]))[:, side]  # (T, 3, win, win)
+        feats = torch.cat([rgb * gains * gs[:, None], gs[:, None].expand(-1, 3, -1, -1)], dim=1).reshape(1, t * 6, win, win)
         s = self.scales[n]
         if s > 1:
             size = -(-win // s) * s

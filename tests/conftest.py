@@ -78,7 +78,7 @@ def trained_paper_checkpoint(tiny_dataset, tmp_path_factory) -> Path:
 def busy(path: Path, out: Path, seed: int = 11) -> Path:
     """A checkpoint made far from the identity it starts as, with seeded random weights (parity and
     stability need a busy network): the paper's C2 and every second convolution; the lens
-    network's pupils (log-transmission noise: lopsided, grainy kernels) and channel scales."""
+    network's pupils (log-transmission noise: lopsided, grainy kernels), cat-eye and channel scales."""
     import torch
 
     from neuralbokeh.checkpoint import load_checkpoint, save_checkpoint
@@ -93,6 +93,8 @@ def busy(path: Path, out: Path, seed: int = 11) -> Path:
             state[name] = t + 1.5 * torch.randn(t.shape, generator=g, dtype=t.dtype)
         elif name == "log_channel_scale":
             state[name] = torch.tensor([0.05, 0.0, -0.08], dtype=t.dtype)
+        elif name == "vignette":  # a cat-eye: the pupils' centroid drifts over the field
+            state[name] = t + torch.tensor([0.4, 0.3, 0.0], dtype=t.dtype)
     data["model_state"] = state
     save_checkpoint(out, {k: v for k, v in data.items() if k not in ("format", "format_version", "package_version")})
     return out

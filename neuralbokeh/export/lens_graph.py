@@ -218,23 +218,26 @@ def conv_rows(g: Nodes, feats: str, weights: np.ndarray, size: int, fp16: bool) 
 
 
 def _band(b: GraphBuilder, k: int, n: int, side: int, pos: str, side_mask: str, src_mask: str, rgb: str, c: str,
-          kernel: np.ndarray, gain: np.ndarray, scale: int, win: int, band_coc: float, margin: float, fp16: bool,
-          rows: bool) -> onnx.GraphProto:
+          kernel: np.ndarray, flow: tuple[str, np.ndarray] | None, scale: int, win: int, band_coc: float, margin: float,
+          fp16: bool, rows: bool) -> onnx.GraphProto:
     """Then-branch: band ``n``'s contribution ``(1, B, 3, 6, win, win)``, (near, same, far) x (RGB, coverage),
     its convolution on a grid ``scale`` times coarser when ``scale > 1`` (``kernel`` is then
     the binned one, :func:`~neuralbokeh.networks.lens.reduce_kernel`), by rows
-    (:func:`conv_rows`) or one depthwise ``Conv``; the colour's kernels times ``gain`` ``(3,)``
-    (:meth:`~neuralbokeh.networks.lens.LensBokeh.colour_gains`)."""
+    (:func:`conv_rows`) or one depthwise ``Conv``. ``flow``: (the window's colour times this
+    side's centroid drift ``(B, 3, win, win)``, the gain's slope ``(3,)``): the colour scattered
+    is ``rgb - slope x that`` (:meth:`~neuralbokeh.networks.lens.LensBokeh.colour_gains`)."""
     g = Nodes(GraphBuilder(b.count), f"t{k}.n{n}s{side}")
     one = g.c("one", 1.0)
     hat = g.op("Relu", g.op("Sub", one, g.op("Abs", g.op("Sub", pos, g.c(f"n{n}", float(n))))))
     gate = g.op("Mul", g.op("Mul", hat, src_mask), side_mask)
+    if flow is not None:
+        rgb = g.op("Sub", rgb, g.op("Mul", flow[0], g.c("slope", np.asarray(flow[1]).reshape(1, 3, 1, 1))))
     feats = g.op("Concat", g.op("Mul", rgb, gate), gate, gate, gate, axis=1)  # (B, 6, win, win)
     if scale > 1:
         extra = -(-win // scale) * scale - win
         feats = g.op("AveragePool", feats, kernel_shape=[scale, scale], strides=[scale, scale], pads=[0, 0, extra, extra],
                      count_include_pad=1)
-    w = np.concatenate([kernel * gain[:, None, None], kernel])[:, None, ::-1, ::-1]  # (6, 1, k, k), correlation weights
+    w = np.concatenate([kernel, kernel])[:, None, ::-1, ::-1]  # (6, 1, k, k), correlation weights
     p = kernel.shape[-1] // 2
     if rows:
         out = conv_rows(g, feats, w, -(-win // scale), fp16)
@@ -260,13 +263,14 @@ def _band(b: GraphBuilder, k: int, n: int, side: int, pos: str, side_mask: str, 
     return _branch(g, g.op("Mul", weights, g.op("Unsqueeze", out, g.c("ax02", [0, 2], np.int64))), f"t{k}_band{n}_{side}")
 
 
-def _tile(b: GraphBuilder, k: int, window: str, kernels: Mapping[int, np.ndarray], gains: Mapping[int, np.ndarray],
+def _tile(b: GraphBuilder, k: int, window: str, kernels: Mapping[int, np.ndarray], flow: tuple[str, Mapping[int, np.ndarray]] | None,
           scales: Mapping[int, int], src: np.ndarray, cfg: ModelConfig, contract: Contract, plan: BandPlan, fp16: bool,
           rows: bool) -> onnx.GraphProto:
     """Then-branch: tile ``k``'s accumulators ``(B, 3, 6, win, win)``, flattened to ``(1, B 18 win^2)``,
     from the outer ``window``; band ``n``, side ``s`` runs where ``band_active[k, n - 1, s]``. A
     band that does not run gives an empty ``(0, B, 3, 6, win, win)``, so the sum over the bands
-    costs only the bands that ran."""
+    costs only the bands that ran. ``flow``: (the outer window of the centroid drift ``(1, 6,
+    win, win)``, ``{n: (2, 3)}`` the gains' slopes) or None (no drift)."""
     g = Nodes(GraphBuilder(b.count), f"t{k}")
     blocks, diameters = plan.blocks, plan.diameters
     win = src.shape[-1]
@@ -289,10 +293,14 @@ def _tile(b: GraphBuilder, k: int, window: str, kernels: Mapping[int, np.ndarray
         behind = g.op("Cast", g.op("Greater", c, g.c("zero", 0.0)), to=TensorProto.FLOAT)
         front = g.op("Cast", g.op("Less", c, g.c("zero", 0.0)), to=TensorProto.FLOAT)
         flags = g.op("Gather", "band_active", g.c("index", k, np.int64))  # (N, 2) of this tile
+        moved = None if flow is None else [
+            g.op("Mul", rgb, g.op("Slice", flow[0], g.c(f"d{s}0", [3 * s], np.int64), g.c(f"d{s}1", [3 * s + 3], np.int64),
+                                  g.c("ax1", [1], np.int64))) for s in range(2)]  # colour x drift, per side
         for n in range(1, blocks + 1):
             for side, (mask, sign) in enumerate(((behind, 1.0), (front, -1.0))):
                 used = g.op("Gather", g.op("Gather", flags, g.c(f"n{n}_row", n - 1, np.int64)), g.c(f"side{side}", side, np.int64))
-                then = _band(g.b, k, n, side, pos, mask, src_mask, rgb, c, kernels[n][side], gains[n][side], scales.get(n, 1), win,
+                band_flow = None if moved is None else (moved[side], flow[1][n][side])
+                then = _band(g.b, k, n, side, pos, mask, src_mask, rgb, c, kernels[n][side], band_flow, scales.get(n, 1), win,
                              sign * float(diameters[n]), float(cfg.occlusion_margin_px), fp16, rows)
                 skip = Nodes(GraphBuilder(g.b.count), f"t{k}.n{n}s{side}.skip")
                 empty = skip.op("Slice", base, skip.c("s0", [0], np.int64), skip.c("s0", [0], np.int64), skip.c("ax0", [0], np.int64))
@@ -347,7 +355,7 @@ def _composite_buckets(top: Nodes, canvas: str, x: str, cfg: ModelConfig, contra
 def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: ModelConfig, contract: Contract,
                      fp16: bool = False, opset: int = 18, metadata: Mapping[str, str] | None = None,
                      scales: Mapping[int, int] | None = None, rows: bool = False,
-                     gains: Mapping[int, np.ndarray] | None = None) -> onnx.ModelProto:
+                     flow: tuple[tuple[np.ndarray, np.ndarray, np.ndarray], Mapping[int, np.ndarray]] | None = None) -> onnx.ModelProto:
     """The full-image ONNX model of a ``LensBokeh``.
 
     Args:
@@ -362,8 +370,10 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: Mod
         scales: ``{n: s}`` band n convolved on a grid s times coarser (default: all 1, direct).
         rows: the band convolutions as row GEMMs (:func:`conv_rows`; exact to float
             rounding, faster) instead of depthwise ``Conv`` nodes.
-        gains: ``{n: (tiles, 2, 3)}`` what band n's scattered colour is multiplied by
-            (``LensBokeh.colour_gains``; default all 1).
+        flow: the cat-eye's flow of light (``LensBokeh.drift_lattice`` and ``colour_gains``):
+            ``((nodes (2, 3, Gy, Gx), rows (H, Gy), cols (W, Gx)), {n: (2, 3)} slopes)``; band n's
+            scattered colour at pixel (i, j) is multiplied by ``1 - slope x drift``, the drift
+            ``rows[i] . nodes . cols[j]``. None: no drift (gains 1).
     """
     if opset < 18:
         raise ValueError(f"the lens graph needs opset >= 18 (Col2Im), got {opset}")
@@ -377,15 +387,22 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: Mod
     top = Nodes(b, "g")
     x = top.op("Concat", "aif", "coc", axis=1)
     pad_t, pad_b, pad_l, pad_r = layout.pads(h, w)
-    padded = top.op("Pad", x, b.const("pads", [0, 0, pad_t, pad_l, 0, 0, pad_b, pad_r], np.int64), mode="edge")
+    pads = b.const("pads", [0, 0, pad_t, pad_l, 0, 0, pad_b, pad_r], np.int64)
+    padded = top.op("Pad", x, pads, mode="edge")
+    drift = None
+    if flow is not None:  # the drift at every pixel, rows (H, Gy) x nodes (6, Gy, Gx) x cols^T, padded as the input
+        nodes, rows_w, cols_w = flow[0]
+        at_rows = top.op("MatMul", b.const("drift_rows", rows_w), b.const("drift_nodes", np.reshape(nodes, (6, *nodes.shape[-2:]))))
+        full = top.op("MatMul", at_rows, b.const("drift_cols_t", np.transpose(cols_w)))  # (6, H, W)
+        drift = top.op("Pad", top.op("Unsqueeze", full, b.const("ax0", [0], np.int64)), pads, mode="edge")
     placed = []
     for k, r, c in layout.origins():
-        window = top.op("Slice", padded, b.const(f"t{k}.starts", [r, c], np.int64),
-                        b.const(f"t{k}.ends", [r + win, c + win], np.int64), b.const("axes_hw", [2, 3], np.int64))
+        starts, ends = b.const(f"t{k}.starts", [r, c], np.int64), b.const(f"t{k}.ends", [r + win, c + win], np.int64)
+        window = top.op("Slice", padded, starts, ends, b.const("axes_hw", [2, 3], np.int64))
         cond = top.op("Gather", "tile_active", b.const(f"t{k}.index", k, np.int64))
         tile_kernels = {n: kernels[n][k] for n in kernels}
-        tile_gains = {n: np.ones((2, 3)) if gains is None else gains[n][k] for n in kernels}
-        then = _tile(b, k, window, tile_kernels, tile_gains, scales, source_masks[k], cfg, contract, plan, fp16, rows)
+        tile_flow = None if drift is None else (top.op("Slice", drift, starts, ends, "axes_hw"), flow[1])
+        then = _tile(b, k, window, tile_kernels, tile_flow, scales, source_masks[k], cfg, contract, plan, fp16, rows)
         b.count += 10_000  # branch-local names stay unique across branches
         other = _passthrough(b, k, window, source_masks[k], contract.normalization)
         b.count += 10_000

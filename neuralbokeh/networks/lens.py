@@ -83,6 +83,10 @@ log = logging.getLogger(__name__)
 
 PUPIL_EXTENT = 1.25  # the pupil grid covers [-PUPIL_EXTENT, PUPIL_EXTENT]^2 aperture radii
 FIELD_DELTA = 0.05  # field units (the sensor's half-width = 1) of the centroid drift's central difference
+# the drift is evaluated on a lattice of nodes this far apart (field units) fixed on the sensor and
+# interpolated: with a 7-blade cat-eye of 0.6 the reference's brightening changes ~6x between the
+# frame's centre and its edge
+DRIFT_NODE_SPACING = 0.25
 PUPIL_FLOOR = 1e-3  # initial transmission outside the prior's shape (log space cannot hold 0)
 SUPERSAMPLE = 4  # the fewest pupil samples per kernel pixel side (anti-aliasing)
 _EPS = 1e-8
@@ -257,6 +261,24 @@ def field_positions(layout: TileLayout, height: int, width: int, window: torch.T
     return torch.stack([x, y], dim=-1) * 2.0 - 1.0
 
 
+def field_weights(pos: torch.Tensor, g: int) -> torch.Tensor:
+    """``(N, g^2)`` bilinear weights of a ``g x g`` grid of nodes over the sensor (row-major, rows
+    y) at the positions ``pos`` ``(N, 2)`` (x, y in [-1, 1]; beyond the sensor, its edge's nodes)."""
+    if g == 1:
+        return pos.new_ones(pos.shape[0], 1)
+    u = ((pos.clamp(-1.0, 1.0) + 1.0) * (0.5 * (g - 1)))  # (N, 2) in node units
+    i0 = u.detach().floor().clamp(max=g - 2).long()
+    f = u - i0.to(u.dtype)
+    wx = torch.stack([1.0 - f[:, 0], f[:, 0]], -1)  # (N, 2)
+    wy = torch.stack([1.0 - f[:, 1], f[:, 1]], -1)
+    w = pos.new_zeros(pos.shape[0], g, g)
+    rows = torch.arange(pos.shape[0], device=pos.device)
+    for dy in range(2):
+        for dx in range(2):
+            w = w.index_put((rows, i0[:, 1] + dy, i0[:, 0] + dx), wy[:, dy] * wx[:, dx], accumulate=True)
+    return w.flatten(1)
+
+
 def pupil_centroids(pupils: torch.Tensor) -> torch.Tensor:
     """``(..., 2)``: the centroid (x right, y down; aperture radii) of the transmission of each
     log-pupil ``(..., P, P)``: where a kernel's light lands on average, in radii of its CoC."""
@@ -347,45 +369,69 @@ class LensBokeh(nn.Module):
         window = window.expand(batch, 4)
         return self.pupils_at(field_positions(layout, height, width, window.to(device=device, dtype=dtype)))
 
-    def centroid_drift(self, layout: TileLayout, height: int, width: int, window: torch.Tensor | None = None,
-                       batch: int = 1) -> torch.Tensor:
-        """``(B, tiles, 2, 3)``: the divergence of the pupils' centroid across the frame at each
-        tile (side, channel), ``d mu_x / d col + d mu_y / d row`` in aperture radii per px.
+    def drift_lattice(self, height: int, width: int, window: torch.Tensor | None = None,
+                      batch: int = 1) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The divergence of the pupils' centroid across the frame, ``d mu_x / d col + d mu_y / d
+        row`` in aperture radii per px (side, channel), on the nodes of a lattice fixed on the
+        sensor (``DRIFT_NODE_SPACING`` field units apart) that a ``height x width`` frame on the
+        sensor ``window`` ``(B, 4)`` reaches, and each pixel's weights on them:
+        ``(nodes (B, 2, 3, Gy, Gx), rows (B, H, Gy), cols (B, W, Gx))``; the drift at pixel (i, j)
+        is ``sum rows[i, y] nodes[.., y, x] cols[j, x]`` (bilinear), the same wherever the frame's
+        window lies, so a crop gets the drift the whole frame has there.
 
         Where the pupil changes over the field (a cat-eye), a blur's centroid drifts by its radius
         times :func:`pupil_centroids`, so defocused light flows across the frame: a plane of one
         colour comes out brighter where the flow converges. A tile's pupil is constant over the
-        tile; this slope gives back the flow's first-order effect (:meth:`colour_gains`)."""
+        tile; this slope at every pixel (:meth:`drift_map`) gives back the flow's first-order
+        effect (:meth:`colour_gains`)."""
         device, dtype = self.pupil_shared.device, self.pupil_shared.dtype
         if window is None:
             window = torch.tensor([[0.0, 0.0, 1.0, 1.0]], device=device, dtype=dtype)
         window = window.to(device=device, dtype=dtype).expand(batch, 4)
-        pos = field_positions(layout, height, width, window)  # (B, T, 2)
-        steps = FIELD_DELTA * torch.tensor([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]], device=device, dtype=dtype)
-        # the four neighbours of every tile in one evaluation: (4 B, T, 2, 3, 2)
-        mu = pupil_centroids(self.pupils_at((pos[None] + steps[:, None, None]).flatten(0, 1))).unflatten(0, (4, -1))
-        slope_x = (mu[0, ..., 0] - mu[1, ..., 0]) / (2.0 * FIELD_DELTA)  # (B, T, 2, 3) per field unit
-        slope_y = (mu[2, ..., 1] - mu[3, ..., 1]) / (2.0 * FIELD_DELTA)
         per_px = 2.0 * window[:, 2:] / torch.tensor([float(width), float(height)], device=device, dtype=dtype)  # field / px
-        return slope_x * per_px[:, 0, None, None, None] + slope_y * per_px[:, 1, None, None, None]
+        nodes, weights = [], []
+        for i, size in enumerate((width, height)):
+            field = (window[:, i, None] * 2.0 - 1.0 + (torch.arange(size, device=device, dtype=dtype) + 0.5)
+                     * per_px[:, i, None]).clamp(-1.0, 1.0)  # (B, size): each pixel centre on the sensor
+            lo = math.floor((float(field.min()) + 1.0) / DRIFT_NODE_SPACING + 1e-9)
+            hi = math.ceil((float(field.max()) + 1.0) / DRIFT_NODE_SPACING - 1e-9)
+            at = torch.arange(lo, max(hi, lo) + 1, device=device, dtype=dtype) * DRIFT_NODE_SPACING - 1.0  # (G,) field
+            nodes.append(at)
+            weights.append((1.0 - (field[..., None] - at).abs() / DRIFT_NODE_SPACING).clamp_min(0.0))  # (B, size, G)
+        (nx, ny), (cols, rows) = nodes, weights
+        pos = torch.stack(torch.broadcast_tensors(nx[None, :], ny[:, None]), dim=-1).reshape(1, -1, 2)  # (1, Gy Gx, 2)
+        steps = FIELD_DELTA * torch.tensor([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]], device=device, dtype=dtype)
+        # the four neighbours of every node in one evaluation: (4, nodes, 2, 3, 2)
+        mu = pupil_centroids(self.pupils_at(pos + steps[:, None])).reshape(4, -1, 2, 3, 2)
+        slope_x = (mu[0, ..., 0] - mu[1, ..., 0]) / (2.0 * FIELD_DELTA)  # (nodes, 2, 3) per field unit
+        slope_y = (mu[2, ..., 1] - mu[3, ..., 1]) / (2.0 * FIELD_DELTA)
+        div = slope_x * per_px[:, 0, None, None, None] + slope_y * per_px[:, 1, None, None, None]  # (B, nodes, 2, 3)
+        return div.unflatten(1, (len(ny), len(nx))).permute(0, 3, 4, 1, 2), rows, cols
+
+    def drift_map(self, height: int, width: int, window: torch.Tensor | None = None, batch: int = 1) -> torch.Tensor:
+        """``(B, 2, 3, H, W)``: :meth:`drift_lattice` at every pixel."""
+        nodes, rows, cols = self.drift_lattice(height, width, window, batch)
+        return torch.einsum("bhy,bscyx,bwx->bschw", rows, nodes, cols)
 
     def colour_gains(self, drift: torch.Tensor, diameter: float) -> torch.Tensor:
-        """``(M, 2, 3)``: what band ``diameter``'s scattered colour is multiplied by, ``1 - div m``
-        for the drift ``m`` of its light (:meth:`centroid_drift` ``(M, 2, 3)`` times the CoC
-        radius, point-reflected in front of the focus). Coverage is geometric and keeps 1, as in
-        the reference scatter (:mod:`neuralbokeh.render.scatter`)."""
+        """``(..., 2, 3, H, W)``: what band ``diameter``'s scattered colour is multiplied by at
+        each source pixel, ``1 - div m`` for the drift ``m`` of its light (:meth:`drift_map`
+        ``(..., 2, 3, H, W)`` times the CoC radius, point-reflected in front of the focus).
+        Coverage is geometric and keeps 1, as in the reference scatter
+        (:mod:`neuralbokeh.render.scatter`)."""
         radius = 0.5 * float(diameter) * torch.exp(self.log_channel_scale)  # (3,) px
-        sign = torch.tensor([[1.0], [-1.0]], dtype=drift.dtype, device=drift.device)  # behind, in front
-        return 1.0 - sign * radius * drift
+        sign = torch.tensor([1.0, -1.0], dtype=drift.dtype, device=drift.device)  # behind, in front
+        return 1.0 - (sign[:, None] * radius)[..., None, None] * drift
 
     def pupils_at(self, pos: torch.Tensor) -> torch.Tensor:
         """Log-transmissions ``(B, T, 2, 3, P, P)`` of the pupils at sensor positions ``pos``
         ``(B, T, 2)`` (x, y in [-1, 1] over the sensor, its left / top edge at -1): the lens-wide
         pupil, the field correction interpolated there and the cat-eye's circle."""
         g, p = self.config.field_grid, self.config.pupil_size
-        nodes = self.pupil_field.permute(2, 3, 4, 5, 0, 1).reshape(1, 6 * p * p, g, g)  # rows: y, cols: x
-        corr = F.grid_sample(nodes, pos.reshape(1, -1, 1, 2), mode="bilinear", padding_mode="border", align_corners=True)
-        corr = corr.reshape(2, 3, p, p, *pos.shape[:2]).permute(4, 5, 0, 1, 2, 3)
+        # bilinear over the nodes (edges clamped) as one matrix product: its backward is a product
+        # too (grid_sample's backward over 6 P^2 channels at a few points took a fifth of a step)
+        corr = field_weights(pos.reshape(-1, 2), g) @ self.pupil_field.reshape(g * g, -1)  # (B T, 6 P^2)
+        corr = corr.reshape(*pos.shape[:2], 2, 3, p, p)
         pupils = self.pupil_shared + corr
         if self.vignette is None:
             return pupils
@@ -467,8 +513,8 @@ class LensBokeh(nn.Module):
         shared = window is None or bool((window == window[:1]).all())
         pupils = self.tile_pupils(layout, height, width, None if window is None else window[:1] if shared else window,
                                   1 if shared else b).flatten(0, 1)  # (B' T, 2, 3, P, P)
-        drift = self.centroid_drift(layout, height, width, None if window is None else window[:1] if shared else window,
-                                    1 if shared else b).flatten(0, 1)  # (B' T, 2, 3)
+        drift = self.drift_map(height, width, None if window is None else window[:1] if shared else window, 1 if shared else b)
+        drift = tile(drift.flatten(1, 2), layout).view(-1, 2, 3, win, win)  # (B' T, 2, 3, win, win)
         coc_flat = coc.reshape(b * n_t, win, win)
         rgb_flat = rgb.reshape(b * n_t, 3, win, win)
         scales = scales or {}
@@ -484,10 +530,11 @@ class LensBokeh(nn.Module):
                     continue  # no pixel of any tile uses this band on this side: nothing computed
                 # each distinct pupil's kernels once per band, both sides (shared: one set for every image)
                 if kern is None:
-                    kern, gains = self.kernels(n, pupils, float(diameters[n])), self.colour_gains(drift, float(diameters[n]))
+                    kern = self.kernels(n, pupils, float(diameters[n]))
                 which = idx % n_t if shared else idx
                 w = gs.reshape(b * n_t, 1, win, win)[idx]
-                feats = torch.cat([rgb_flat[idx] * w * gains[which, side, :, None, None], w], dim=1)  # (M, 4, win, win)
+                gains = self.colour_gains(drift[which], float(diameters[n]))[:, side]  # (M, 3, win, win)
+                feats = torch.cat([rgb_flat[idx] * w * gains, w], dim=1)  # (M, 4, win, win)
                 out = _scatter(feats, kern[:, side], which, scales.get(n, 1))
                 bw = bucket_weights(sign * float(diameters[n]), coc_flat[idx], cfg.occlusion_margin_px)
                 contrib = bw.permute(1, 0, 2, 3).unsqueeze(2) * out.unsqueeze(1)  # (M, 3, 6, win, win)
