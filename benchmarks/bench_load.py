@@ -95,7 +95,7 @@ def cli_row(model: Path, frame: Path, threads: int, repeats: int, tmp: Path, ren
         times.append(time.perf_counter() - t)
     cli = statistics.median(times)
     print(f"compositing CLI, one frame per process: {cli:.2f} s = {cli / render_s:.2f}x the render alone "
-          f"({render_s:.3f} s); render + alpha in one batch, EXR read and written", flush=True)
+          f"({render_s:.3f} s); render, alpha and a uniform field in one batch, EXR read and written", flush=True)
 
 
 def main() -> None:
