@@ -77,7 +77,7 @@ class TracedPlate(nn.Module):
     def band(self, acc, rgb, c, pos, n: int, side: int):
         t, win = rgb.shape[0], rgb.shape[-1]
         gs = _gate(pos, n) * self.src[:, 0] * ((c > 0) if side == 0 else (c < 0)).to(rgb.dtype)  # (T, win, win)
-        gains = self.model.colour_gains(self.drift, float(self.diameters[n]))[:, side]  # (T, 3, win, win)
+        gains = self.model.colour_gains(self.drift[:, side], float(self.diameters[n]), side)  # (T, 3, win, win)
         feats = torch.cat([rgb * gains * gs[:, None], gs[:, None].expand(-1, 3, -1, -1)], dim=1).reshape(1, t * 6, win, win)
         s = self.scales[n]
         if s > 1:

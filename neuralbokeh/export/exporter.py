@@ -339,9 +339,7 @@ class _LensExport:
             drift, rows, cols = (t[0].double() for t in m.drift_lattice(*m.contract.size, self.window))
             band_kernels = {n: reduce_kernel(m.kernels(n, pupils, float(d[n])).double(), self.scales[n]).numpy()
                             for n in range(1, m.config.blocks + 1)}
-            # the gain is affine in the drift: 1 - slope x drift, the slope read off the module's own gains
-            slopes = {n: (1.0 - m.colour_gains(torch.ones(2, 3, 1, 1, dtype=torch.float64), float(d[n]))[..., 0, 0]).numpy()
-                      for n in range(1, m.config.blocks + 1)}
+            slopes = {n: m.gain_slopes(float(d[n])).double().numpy() for n in range(1, m.config.blocks + 1)}
         flow = None if not bool(drift.abs().max() > 0) else ((drift.numpy(), rows.numpy(), cols.numpy()), slopes)
         return build_lens_graph(band_kernels, self.plan, m.config, m.contract, fp16, opset, props, self.scales,
                                 self.spec.rows, flow)

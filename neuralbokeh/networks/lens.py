@@ -413,15 +413,20 @@ class LensBokeh(nn.Module):
         nodes, rows, cols = self.drift_lattice(height, width, window, batch)
         return torch.einsum("bhy,bscyx,bwx->bschw", rows, nodes, cols)
 
-    def colour_gains(self, drift: torch.Tensor, diameter: float) -> torch.Tensor:
-        """``(..., 2, 3, H, W)``: what band ``diameter``'s scattered colour is multiplied by at
-        each source pixel, ``1 - div m`` for the drift ``m`` of its light (:meth:`drift_map`
-        ``(..., 2, 3, H, W)`` times the CoC radius, point-reflected in front of the focus).
-        Coverage is geometric and keeps 1, as in the reference scatter
-        (:mod:`neuralbokeh.render.scatter`)."""
+    def gain_slopes(self, diameter: float) -> torch.Tensor:
+        """``(2, 3)``: band ``diameter``'s (px) CoC radius per channel, point-reflected in front of
+        the focus (side 0 behind, 1 in front): the slope of :meth:`colour_gains` in the drift."""
         radius = 0.5 * float(diameter) * torch.exp(self.log_channel_scale)  # (3,) px
-        sign = torch.tensor([1.0, -1.0], dtype=drift.dtype, device=drift.device)  # behind, in front
-        return 1.0 - (sign[:, None] * radius)[..., None, None] * drift
+        return torch.stack([radius, -radius])
+
+    def colour_gains(self, drift: torch.Tensor, diameter: float, side: int | None = None) -> torch.Tensor:
+        """What band ``diameter``'s scattered colour is multiplied by at each source pixel,
+        ``1 - div m`` for the drift ``m`` of its light (:meth:`drift_map` times the CoC radius,
+        point-reflected in front of the focus), shaped as ``drift``: ``(..., 2, 3, H, W)``, or one
+        ``side``'s ``(..., 3, H, W)``. Coverage is geometric and keeps 1, as in the reference
+        scatter (:mod:`neuralbokeh.render.scatter`)."""
+        slopes = self.gain_slopes(diameter).to(drift.dtype)
+        return 1.0 - (slopes if side is None else slopes[side])[..., None, None] * drift
 
     def pupils_at(self, pos: torch.Tensor) -> torch.Tensor:
         """Log-transmissions ``(B, T, 2, 3, P, P)`` of the pupils at sensor positions ``pos``
@@ -533,7 +538,7 @@ class LensBokeh(nn.Module):
                     kern = self.kernels(n, pupils, float(diameters[n]))
                 which = idx % n_t if shared else idx
                 w = gs.reshape(b * n_t, 1, win, win)[idx]
-                gains = self.colour_gains(drift[which], float(diameters[n]))[:, side]  # (M, 3, win, win)
+                gains = self.colour_gains(drift[which, side], float(diameters[n]), side)  # (M, 3, win, win)
                 feats = torch.cat([rgb_flat[idx] * w * gains, w], dim=1)  # (M, 4, win, win)
                 out = _scatter(feats, kern[:, side], which, scales.get(n, 1))
                 bw = bucket_weights(sign * float(diameters[n]), coc_flat[idx], cfg.occlusion_margin_px)
