@@ -3,7 +3,7 @@
 Built op by op rather than traced from the module: the traced graphs are slower (docs/runtime.md,
 "Where the lens maths lives"; ``benchmarks/bench_traced_export.py``). Its rules come from the module's own
 definitions: the band plan (:class:`~neuralbokeh.core.bands.BandPlan`: lattice, band position,
-the fill's reach) and the fill's ``ops.holes.JUMP_PX``.
+the fill's reach) and the fill's ``ops.holes`` constants (``JUMP_PX``, ``STEP_PX``, ``LOG_OFFSET``, ``OUTLIER_RATIO``).
 
 Named inputs ``aif``, ``coc``, ``tile_active`` (as the paper network's graph, ``graph.py``) and
 ``band_active`` ``(tiles, N, 2)`` bool; output ``defocus``. The learned pupils are rasterised
@@ -52,7 +52,7 @@ from ..core.contract import Contract
 from ..core.normalization import Normalization
 from ..core.tiling import pyramid_levels
 from ..networks.config import ModelConfig
-from ..ops.holes import JUMP_PX
+from ..ops.holes import JUMP_PX, LOG_OFFSET, OUTLIER_RATIO, STEP_PX
 from .graph import GraphBuilder, finish_model
 
 _EPS = 1e-8
@@ -116,10 +116,11 @@ def _branch(g: Nodes, result: str, name: str) -> onnx.GraphProto:
 
 def hidden_background_graph(top: Nodes, x: str, contract: Contract, r: int) -> str:
     """``(B, 3, H, W)`` linear estimate of what foregrounds hide, as ``LensBokeh.hidden``:
-    occluders by a separable max over ``2r + 1`` px (``r``: the plan's ``fill_radius_px``), then the
-    pull-push fill of :func:`neuralbokeh.ops.holes.push_pull_fill` on the zero-padded
-    ``2^L`` square (``AveragePool`` 2x2, ``Resize`` x2 half-pixel), whose level 0 is never
-    padded nor upsampled beyond the image (the same values, ~2x less work at 1080p)."""
+    occluders by a separable max over ``2r + 1`` px (``r``: the plan's ``fill_radius_px``), then
+    (:func:`neuralbokeh.ops.holes.hidden_background`) the pull-push fill of the log of the light
+    on the zero-padded ``2^L`` square (``AveragePool`` 2x2, ``Resize`` x2 half-pixel), whose
+    level 0 is never padded nor upsampled beyond the image (the same values, ~2x less work at
+    1080p), and each visible pixel's own colour clamped by its 3 x 3 geometric mean."""
     h, w = contract.size
     _, rgb = _linear_rgb(top, x, contract.normalization)
     coc = top.op("Mul", top.op("Slice", x, top.c("bg.s3", [3], np.int64), top.c("bg.s4", [4], np.int64), top.c("bg.ax1", [1], np.int64)),
@@ -128,13 +129,16 @@ def hidden_background_graph(top: Nodes, x: str, contract: Contract, r: int) -> s
         return rgb  # nothing can hide anything: the fill is the AIF itself
     far = window_max(top, window_max(top, coc, r, 3, w), r, 2, h)  # rows, then columns (as ops.holes.occluders)
     hide = top.op("Less", coc, top.op("Sub", far, top.c("bg.jump", JUMP_PX)))
+    near = window_max(top, window_max(top, coc, 1, 3, w), 1, 2, h)  # the 3 x 3 neighbours
+    hide = top.op("Or", hide, top.op("Less", coc, top.op("Sub", near, top.c("bg.step", STEP_PX))))
     keep = top.op("Cast", top.op("Not", hide), to=TensorProto.FLOAT)
+    log_rgb = top.op("Log", top.op("Add", top.op("Max", rgb, top.c("bg.zero", 0.0)), top.c("bg.log_offset", LOG_OFFSET)))
     # the pyramid of push_pull_fill on the zero-padded 2^L square, with level 0 left unpadded:
     # its 2x2 means over the padding are 0 with weight 0, as padding level 1 with zeros gives
     side = 1 << pyramid_levels(h, w)
     if side < 2:
         return rgb  # one pixel: nothing stands in front of anything
-    image, weight = _pull(top, rgb, keep, [0, 0, h % 2, w % 2])
+    image, weight = _pull(top, log_rgb, keep, [0, 0, h % 2, w % 2])
     pads = top.c("bg.pads", [0, 0, 0, 0, 0, 0, side // 2 - (h + 1) // 2, side // 2 - (w + 1) // 2], np.int64)
     image, weight = top.op("Pad", image, pads), top.op("Pad", weight, pads)
     levels = []
@@ -151,7 +155,14 @@ def hidden_background_graph(top: Nodes, x: str, contract: Contract, r: int) -> s
     need = top.c("bg.need", [min(h // 2 + 1, side // 2), min(w // 2 + 1, side // 2)], np.int64)
     up = _upsample2(top, top.op("Slice", filled, top.c("bg.start", [0, 0], np.int64), need, top.c("bg.axes", [2, 3], np.int64)))
     up = top.op("Slice", up, top.c("bg.start", [0, 0], np.int64), top.c("bg.end", [h, w], np.int64), top.c("bg.axes", [2, 3], np.int64))
-    return top.op("Add", top.op("Mul", keep, rgb), top.op("Mul", top.op("Sub", top.c("bg.one", 1.0), keep), up))
+    behind = top.op("Sub", top.op("Exp", up), top.c("bg.log_offset", LOG_OFFSET))
+    # visible pixels: their own colour, at most OUTLIER_RATIO x the geometric mean of their visible 3 x 3
+    # (count_include_pad=0 divides both sums by the same count: their ratio is the mean over visible pixels)
+    num = top.op("AveragePool", top.op("Mul", log_rgb, keep), kernel_shape=[3, 3], pads=[1, 1, 1, 1], count_include_pad=0)
+    den = top.op("AveragePool", keep, kernel_shape=[3, 3], pads=[1, 1, 1, 1], count_include_pad=0)
+    level = top.op("Exp", top.op("Div", num, top.op("Max", den, top.c("bg.tiny", 1e-12))))
+    own = top.op("Min", rgb, top.op("Sub", top.op("Mul", level, top.c("bg.outlier", OUTLIER_RATIO)), top.c("bg.log_offset", LOG_OFFSET)))
+    return top.op("Add", top.op("Mul", keep, own), top.op("Mul", top.op("Sub", top.c("bg.one", 1.0), keep), behind))
 
 
 def window_max(g: Nodes, x: str, r: int, axis: int, size: int) -> str:

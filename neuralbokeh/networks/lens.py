@@ -413,6 +413,16 @@ class LensBokeh(nn.Module):
         nodes, rows, cols = self.drift_lattice(height, width, window, batch)
         return torch.einsum("bhy,bscyx,bwx->bschw", rows, nodes, cols)
 
+    def pupils_vary(self) -> bool:
+        """Whether the pupils change across the sensor (a field correction or a cat-eye's shift
+        that is not zero), or may while training (the drift's gradient is not zero there); where
+        they do not, :meth:`drift_map` is zero everywhere."""
+        if torch.is_grad_enabled() and any(p.requires_grad for p in (self.pupil_field, self.vignette) if p is not None):
+            return True
+        if bool(self.pupil_field.detach().abs().max() > 0):
+            return True
+        return self.vignette is not None and bool(self.vignette.detach()[:2].abs().max() > 0)
+
     def gain_slopes(self, diameter: float) -> torch.Tensor:
         """``(2, 3)``: band ``diameter``'s (px) CoC radius per channel, point-reflected in front of
         the focus (side 0 behind, 1 in front): the slope of :meth:`colour_gains` in the drift."""
@@ -518,8 +528,10 @@ class LensBokeh(nn.Module):
         shared = window is None or bool((window == window[:1]).all())
         pupils = self.tile_pupils(layout, height, width, None if window is None else window[:1] if shared else window,
                                   1 if shared else b).flatten(0, 1)  # (B' T, 2, 3, P, P)
-        drift = self.drift_map(height, width, None if window is None else window[:1] if shared else window, 1 if shared else b)
-        drift = tile(drift.flatten(1, 2), layout).view(-1, 2, 3, win, win)  # (B' T, 2, 3, win, win)
+        drift = None
+        if self.pupils_vary():  # else the drift is exactly zero: no map, every gain 1
+            drift = self.drift_map(height, width, None if window is None else window[:1] if shared else window, 1 if shared else b)
+            drift = tile(drift.flatten(1, 2), layout).view(-1, 2, 3, win, win)  # (B' T, 2, 3, win, win)
         coc_flat = coc.reshape(b * n_t, win, win)
         rgb_flat = rgb.reshape(b * n_t, 3, win, win)
         scales = scales or {}
@@ -538,8 +550,10 @@ class LensBokeh(nn.Module):
                     kern = self.kernels(n, pupils, float(diameters[n]))
                 which = idx % n_t if shared else idx
                 w = gs.reshape(b * n_t, 1, win, win)[idx]
-                gains = self.colour_gains(drift[which, side], float(diameters[n]), side)  # (M, 3, win, win)
-                feats = torch.cat([rgb_flat[idx] * w * gains, w], dim=1)  # (M, 4, win, win)
+                colour = rgb_flat[idx] * w
+                if drift is not None:
+                    colour = colour * self.colour_gains(drift[which, side], float(diameters[n]), side)  # (M, 3, win, win)
+                feats = torch.cat([colour, w], dim=1)  # (M, 4, win, win)
                 out = _scatter(feats, kern[:, side], which, scales.get(n, 1))
                 bw = bucket_weights(sign * float(diameters[n]), coc_flat[idx], cfg.occlusion_margin_px)
                 contrib = bw.permute(1, 0, 2, 3).unsqueeze(2) * out.unsqueeze(1)  # (M, 3, 6, win, win)

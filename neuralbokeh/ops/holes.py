@@ -11,8 +11,9 @@ background from the visible one nearby (torch, no file I/O):
 * :func:`push_pull_fill`: fills masked pixels from the unmasked ones around them, coarse to fine
   (pull-push interpolation: normalised box averages on an image pyramid, then each level
   fills the holes of the finer one bilinearly);
-* :func:`hidden_background`: both together, the colour a renderer puts where its coverage
-  falls short (``fill="background"`` of :func:`neuralbokeh.render.scatter_defocus`).
+* :func:`hidden_background`: both together, in the log of the light, the colour a renderer puts
+  where its coverage falls short (``fill="background"`` of
+  :func:`neuralbokeh.render.scatter_defocus`), with no highlight counted twice.
 """
 
 from __future__ import annotations
@@ -26,6 +27,13 @@ from ..core.checks import check_nonnegative, check_positive, check_shape
 from ..core.tiling import pyramid_levels
 
 JUMP_PX = 4.0  # the least signed-CoC step (px) that counts as a depth discontinuity
+# ... or, to a neighbour (3 x 3), this step: the in-focus band's width. Without it a one-pixel HDR
+# light 2.6 px in front of a wall filled the coverage its own scattered light left short with its
+# own sharp value (Mitsuba renders: up to 1.6x the light around such highlights; docs/benchmarks.md).
+# Along a slope neighbours differ by less than 1 px, so a plane still hides nothing.
+STEP_PX = 1.0
+LOG_OFFSET = 0.0018  # linear units (1 % of middle grey) added before the fill's logarithm, so black has one
+OUTLIER_RATIO = 4.0  # a visible pixel's fill is at most this times the geometric mean of its 3 x 3 square
 
 
 def occluders(coc: torch.Tensor, radius_px: int, jump_px: float = JUMP_PX) -> torch.Tensor:
@@ -84,21 +92,43 @@ def _pull_push(image: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
     return weight * image + (1.0 - weight) * up
 
 
-def hidden_background(aif: torch.Tensor, coc: torch.Tensor, jump_px: float = JUMP_PX, radius_px: int | None = None) -> torch.Tensor:
-    """The AIF with every occluder (:func:`occluders`) replaced by the visible background around
-    it (:func:`push_pull_fill`).
+def visible_geometric_mean(log_image: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    """``exp`` of the mean of ``log_image`` ``(B, C, H, W)`` over the pixels of weight 1 in the
+    3 x 3 square around each pixel (``weight`` ``(B, 1, H, W)``, 0 or 1; nothing beyond the
+    edges): the local level of a surface, which a lone highlight barely moves."""
+    num = F.avg_pool2d(log_image * weight, 3, 1, 1, count_include_pad=False)
+    den = F.avg_pool2d(weight, 3, 1, 1, count_include_pad=False)
+    return torch.exp(num / den.clamp_min(1e-12))
+
+
+def hidden_background(aif: torch.Tensor, coc: torch.Tensor, jump_px: float = JUMP_PX, radius_px: int | None = None,
+                      step_px: float = STEP_PX) -> torch.Tensor:
+    """What fills the coverage a blurred edge leaves short: behind every occluder (in front of the
+    farthest pixel within reach by ``jump_px``, or of a neighbour by ``step_px``:
+    :func:`occluders`) the visible background around it (:func:`push_pull_fill` of the log of
+    the light, so that a highlight among the visible pixels does not light up what it hides);
+    elsewhere the pixel's own colour, at most :data:`OUTLIER_RATIO` x the geometric mean of the
+    visible 3 x 3 square around it (a highlight's light is scattered already; its sharp value
+    would add it a second time wherever its own surface's coverage falls short).
 
     Args:
-        aif: ``(B, 3, H, W)`` all-in-focus linear RGB.
+        aif: ``(B, 3, H, W)`` all-in-focus linear RGB (values below 0 count as 0).
         coc: ``(B, 1, H, W)`` signed CoC in px.
         jump_px: the least CoC step (px) that counts as a depth discontinuity, > 0.
         radius_px: how far (px) an occluder is looked for, >= 0 (default: half the largest
-            |CoC|, the reach of the widest blur).
+            |CoC|, the reach of the widest blur); 0 returns ``aif`` (nothing is scattered).
+        step_px: the least CoC step (px) to a neighbour that counts as one, > 0.
 
     Returns:
-        ``(B, 3, H, W)``, equal to ``aif`` wherever nothing nearer stands within reach.
+        ``(B, 3, H, W)`` linear RGB.
     """
     if radius_px is None:
         radius_px = math.ceil(float(coc.abs().max()) / 2.0) if coc.numel() else 0
-    hide = occluders(coc, radius_px, jump_px)
-    return push_pull_fill(aif, (~hide).to(aif.dtype))
+    if radius_px == 0:
+        return aif
+    hide = occluders(coc, radius_px, jump_px) | occluders(coc, 1, step_px)
+    keep = (~hide).to(aif.dtype)
+    log_aif = torch.log(aif.clamp_min(0.0) + LOG_OFFSET)
+    behind = torch.exp(push_pull_fill(log_aif, keep)) - LOG_OFFSET
+    own = torch.minimum(aif, OUTLIER_RATIO * visible_geometric_mean(log_aif, keep) - LOG_OFFSET)
+    return torch.where(hide, behind, own)
