@@ -428,3 +428,19 @@ def test_a_highlight_beside_a_depth_edge_keeps_the_flux_the_reference_layers_giv
     ref, net = (out[1e4][i] - out[0.0][i] for i in range(2))
     assert net.sum() == pytest.approx(ref.sum(), rel=0.01)  # measured 0.2 %; 20-75 % before the fill knew highlights
     assert np.abs(net - ref).sum() < 0.03 * np.abs(ref).sum()  # and where it lands: measured <= 1.7 %
+
+
+def test_pupils_that_do_not_vary_skip_the_drift_map_and_change_nothing():
+    """An untrained model's pupils are the same everywhere on the sensor: without gradients it
+    skips the drift map (exactly zero there), with them it computes it; the outputs are equal."""
+    m = _model()
+    g = torch.Generator().manual_seed(2)
+    x = torch.cat([NORM.encode(torch.rand(1, 3, 48, 48, generator=g)), (2 * torch.rand(1, 1, 48, 48, generator=g) - 1)], 1)
+    with torch.no_grad():
+        assert not m.pupils_vary()
+        skipped = m(x)
+    assert m.pupils_vary()  # gradients on: the drift's own gradient is not zero, so it is computed
+    assert torch.equal(m(x).detach(), skipped)
+    with torch.no_grad():
+        m.vignette[0] = 0.3  # a cat-eye: the pupils vary, the map is computed
+        assert m.pupils_vary()
