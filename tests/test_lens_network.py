@@ -85,6 +85,45 @@ def test_every_pupil_cell_under_a_kernel_pixel_counts_alike(diameter):
     assert share.min() >= 0.85 * share.max(), (share.min(), share.max())
 
 
+def _sampled_kernels(m, n, pupils, diameter):
+    """The slow, literal rasterisation the separable one replaces: every supersample of every
+    kernel pixel read from the pupil by ``grid_sample`` (bilinear, zero outside), then averaged."""
+    import torch.nn.functional as F
+
+    from neuralbokeh.networks.lens import supersampling
+
+    k, p = m.kernel_size(n), m.config.pupil_size
+    scale = torch.exp(m.log_channel_scale).to(pupils.dtype)
+    ss = supersampling(diameter * float(scale.detach().min()), p)
+    offs = (torch.arange(ss, dtype=pupils.dtype) + 0.5) / ss - 0.5
+    pos = (torch.arange(-(k // 2), k // 2 + 1, dtype=pupils.dtype)[:, None] + offs).reshape(-1)
+    g = pos[None, :] / (0.5 * diameter * scale)[:, None] / PUPIL_EXTENT  # (3, k ss) grid units
+    grid = torch.stack(torch.broadcast_tensors(g[:, None, :], g[:, :, None]), dim=-1)  # (3, m, m, (u, v))
+    count = pupils.shape[0]
+    t = torch.exp(pupils).reshape(count * 2, 3, p, p).permute(1, 0, 2, 3)
+    samples = F.grid_sample(t, grid, mode="bilinear", padding_mode="zeros", align_corners=True)
+    kern = samples.reshape(3, count * 2, k, ss, k, ss).mean(dim=(3, 5)).permute(1, 0, 2, 3).reshape(count, 2, 3, k, k)
+    kern = kern / kern.sum(dim=(-2, -1), keepdim=True)
+    return torch.stack([kern[:, 0], kern[:, 1].flip(-2, -1)], dim=1)
+
+
+@pytest.mark.parametrize("n, diameter", [(1, 2.6), (3, 6.3), (6, 12.9)])
+def test_separable_kernels_are_the_sampled_pupil_and_learn_alike(n, diameter):
+    """The kernels are ``W T W^T`` (two matrix products per pupil): the same numbers, and the same
+    gradients for the pupils and the channel scales, as reading every supersample from the pupil."""
+    m = _model().double()
+    with torch.no_grad():
+        m.log_channel_scale.copy_(torch.tensor([0.05, 0.0, -0.04]))
+    g = torch.Generator().manual_seed(5)
+    pupils = (torch.randn(2, 2, 3, m.config.pupil_size, m.config.pupil_size, generator=g, dtype=torch.float64)).requires_grad_()
+    weights = torch.rand(2, 2, 3, m.kernel_size(n), m.kernel_size(n), generator=g, dtype=torch.float64)
+    got, want = m.kernels(n, pupils, diameter), _sampled_kernels(m, n, pupils, diameter)
+    assert torch.allclose(got, want, atol=1e-12), float((got - want).abs().max())
+    grads = [torch.autograd.grad((k * weights).sum(), (pupils, m.log_channel_scale)) for k in (got, want)]
+    for a, b in zip(*grads):
+        assert torch.allclose(a, b, atol=1e-10), float((a - b).abs().max())
+
+
 def test_binned_kernels_keep_their_sum_and_symmetry():
     g = torch.Generator().manual_seed(4)
     k = torch.rand(2, 3, 17, 17, generator=g, dtype=torch.float64)

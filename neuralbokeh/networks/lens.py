@@ -76,7 +76,7 @@ from ..core.contract import Contract
 from ..core.tiling import TileLayout
 from ..ops.fftconv import next_fast_len
 from ..ops.holes import hidden_background
-from ..ops.tiles import tile
+from ..ops.tiles import overlap_add, tile
 from .config import ModelConfig
 
 log = logging.getLogger(__name__)
@@ -163,6 +163,19 @@ def supersampling(diameter_px: float, size: int) -> int:
     """
     cells_per_px = 2.0 / (max(diameter_px, _EPS) * pupil_step(size))
     return max(SUPERSAMPLE, math.ceil(cells_per_px))
+
+
+def raster_weights(k: int, ss: int, radius_px: torch.Tensor, size: int, dtype: torch.dtype = torch.float32,
+                   device: torch.device | None = None) -> torch.Tensor:
+    """``(C, k, size)``: the weight of each of a ``size``-sample pupil axis in each of ``k`` kernel
+    pixels (centred) for a pupil of radius ``radius_px`` ``(C,)`` px: the mean over ``ss``
+    points per pixel of the linear interpolation between pupil samples (zero beyond the grid)."""
+    offs = (torch.arange(ss, dtype=dtype, device=device) + 0.5) / ss - 0.5
+    h = k // 2
+    pos = (torch.arange(-h, h + 1, dtype=dtype, device=device)[:, None] + offs).reshape(-1)  # (k ss,) px
+    at = (pos[None, :] / radius_px.to(dtype)[:, None] / PUPIL_EXTENT + 1.0) * (0.5 * (size - 1))  # (C, k ss) in samples
+    hat = (1.0 - (at[..., None] - torch.arange(size, dtype=dtype, device=device)).abs()).clamp_min(0.0)  # (C, k ss, size)
+    return hat.unflatten(1, (k, ss)).mean(dim=2)
 
 
 def prior_transmission(shape: Aperture, size: int) -> np.ndarray:
@@ -456,25 +469,17 @@ class LensBokeh(nn.Module):
     def kernels(self, n: int, pupils: torch.Tensor, diameter: float) -> torch.Tensor:
         """Band ``n``'s kernels ``(M, 2, 3, k, k)`` for the pupils ``(M, 2, 3, P, P)`` (log) at CoC
         ``diameter`` (px): side 0 behind, 1 in front (already point-reflected), each summing to
-        1, as a correlation-free PSF (light lands at ``p + offset``)."""
-        cfg = self.config
+        1, as a correlation-free PSF (light lands at ``p + offset``).
+
+        Kernel pixel ``(a, b)`` is the mean of the bilinearly interpolated transmission over
+        ``ss x ss`` points of its footprint (:func:`supersampling`). Both the sampling and the
+        interpolation are separable, so the kernel is ``W T W^T`` with ``W`` ``(k, P)`` the
+        row weights (:func:`raster_weights`): two small matrix products per pupil."""
         k = self.kernel_size(n)
-        h = k // 2
         scale = torch.exp(self.log_channel_scale)  # (3,)
-        radius = 0.5 * float(diameter) * scale  # (3,) px
-        device, dtype = pupils.device, pupils.dtype
-        ss = supersampling(float(diameter) * float(scale.detach().min()), cfg.pupil_size)
-        offs = (torch.arange(ss, dtype=dtype, device=device) + 0.5) / ss - 0.5
-        pos = (torch.arange(-h, h + 1, dtype=dtype, device=device)[:, None] + offs).reshape(-1)
-        m = pos.numel()
-        u = pos[None, None, :] / radius[:, None, None] / PUPIL_EXTENT  # (3, 1, m), in grid units [-1, 1]
-        v = pos[None, :, None] / radius[:, None, None] / PUPIL_EXTENT  # rows go down; grid rows too
-        grid = torch.stack([u.expand(3, m, m), v.expand(3, m, m)], dim=-1)  # (3, m, m, 2)
-        count = pupils.shape[0]
-        pup = torch.exp(pupils).reshape(count * 2, 3, cfg.pupil_size, cfg.pupil_size).permute(1, 0, 2, 3)  # (3, M*2, P, P)
-        samples = F.grid_sample(pup, grid, mode="bilinear", padding_mode="zeros", align_corners=True)  # (3, M*2, m, m)
-        kern = samples.reshape(3, count * 2, k, ss, k, ss).mean(dim=(3, 5))
-        kern = kern.permute(1, 0, 2, 3).reshape(count, 2, 3, k, k)
+        ss = supersampling(float(diameter) * float(scale.detach().min()), self.config.pupil_size)
+        w = raster_weights(k, ss, 0.5 * float(diameter) * scale, self.config.pupil_size, pupils.dtype, pupils.device)
+        kern = w[None, None] @ torch.exp(pupils) @ w.transpose(-1, -2)[None, None]  # (M, 2, 3, k, k)
         kern = kern / kern.sum(dim=(-2, -1), keepdim=True).clamp_min(_EPS)
         # in front of the focus plane the aperture's image is inverted
         return torch.stack([kern[:, 0], kern[:, 1].flip(-2, -1)], dim=1)
@@ -520,7 +525,9 @@ class LensBokeh(nn.Module):
         pos = plan.position(coc)  # continuous band index
         src = self.source_masks(layout, x.device, x.dtype)[None]  # (1, T, 1, win, win)
         active = torch.ones(n_t, dtype=torch.bool, device=x.device) if tile_active is None else tile_active.to(x.device)
-        acc = _in_focus_light(rgb, pos, src, active).view(b * n_t, 3, 6, win, win)
+        # a tensor of its own, not a view: the bands add into it in place (a view would make each
+        # in-place add copy the whole accumulator in the backward)
+        acc = _in_focus_light(rgb, pos, src, active).reshape(b * n_t, 3, 6, win, win).clone()
         self.last_convolutions = 0  # (image, tile, band, side) scatters computed by the last call
         if blocks == 0:
             return acc.view(b, n_t, 3, 6, win, win)
@@ -535,7 +542,6 @@ class LensBokeh(nn.Module):
         coc_flat = coc.reshape(b * n_t, win, win)
         rgb_flat = rgb.reshape(b * n_t, 3, win, win)
         scales = scales or {}
-        grad = torch.is_grad_enabled()
         for n in range(1, blocks + 1):
             g = _gate(pos, n) * src[:, :, 0]  # (B, T, win, win)
             kern = None
@@ -557,8 +563,9 @@ class LensBokeh(nn.Module):
                 out = _scatter(feats, kern[:, side], which, scales.get(n, 1))
                 bw = bucket_weights(sign * float(diameters[n]), coc_flat[idx], cfg.occlusion_margin_px)
                 contrib = bw.permute(1, 0, 2, 3).unsqueeze(2) * out.unsqueeze(1)  # (M, 3, 6, win, win)
-                # one band at a time: memory stays O(image), not O(image x bands)
-                acc = acc.index_add(0, idx, contrib) if grad else acc.index_add_(0, idx, contrib)
+                # one band at a time: memory stays O(image), not O(image x bands); in place, so no
+                # band copies the whole accumulator
+                acc.index_add_(0, idx, contrib)  # in place under autograd too: no op saved acc for its backward
                 self.last_convolutions += int(idx.numel())
         return acc.view(b, n_t, 3, 6, win, win)
 
@@ -608,9 +615,7 @@ class LensBokeh(nn.Module):
             bg = None if background is None else tile(background, layout).view(b * n_t, 3, win, win)
             out = self.composite(acc.view(b * n_t, 3, 6, win, win), bg)
             return self.contract.normalization.encode(out.clamp_min(0.0)).view(b, n_t * 3, win, win)
-        canvas = acc.new_zeros(b, 18, *layout.padded_size)
-        for k, r, c in layout.origins():
-            canvas[:, :, r : r + win, c : c + win] += acc[:, k].reshape(b, 18, win, win)
+        canvas = overlap_add(acc.view(b, n_t, 18, win, win), layout)
         t_o = layout.overlap
         canvas = canvas[:, :, t_o : t_o + h, t_o : t_o + w]
         out = self.composite(canvas.view(b, 3, 6, h, w), background)

@@ -23,7 +23,18 @@ def tile(x: torch.Tensor, layout: TileLayout) -> torch.Tensor:
     if top or bottom or left or right:
         x = F.pad(x, (left, right, top, bottom), mode="replicate")
     win = layout.window
-    return torch.cat([x[:, :, r : r + win, c : c + win] for _, r, c in layout.origins()], dim=1)
+    # one unfold (its backward is one fold) instead of a slice per tile, whose backward would
+    # each write a zero canvas of the whole input
+    cols = F.unfold(x, win, stride=layout.core)  # (B, C win win, tiles), tiles row-major as origins()
+    b, c = x.shape[:2]
+    return cols.view(b, c, win, win, -1).permute(0, 4, 1, 2, 3).reshape(b, -1, win, win)
+
+
+def overlap_add(windows: torch.Tensor, layout: TileLayout) -> torch.Tensor:
+    """Sum windows ``(B, tiles, C, window, window)`` into place on the padded canvas
+    ``(B, C, H_p, W_p)`` (:meth:`TileLayout.padded_size`): the adjoint of :func:`tile`'s cut."""
+    b, n_t, c, win, _ = windows.shape
+    return F.fold(windows.reshape(b, n_t, c * win * win).transpose(1, 2), layout.padded_size, win, stride=layout.core)
 
 
 def untile(y: torch.Tensor, layout: TileLayout, height: int, width: int) -> torch.Tensor:
