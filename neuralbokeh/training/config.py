@@ -68,6 +68,10 @@ class TrainSection:
             the MSE, >= 0 (0: the MSE alone, as the paper). The MSE rewards a blur that is right
             on average; SSIM also asks for the structure (e.g. how much of a fine texture survives
             a given CoC), where the MSE alone traded it away for PSNR.
+        pupil_tv: weight of the lens network's pupil roughness
+            (:meth:`~neuralbokeh.networks.lens.LensBokeh.pupil_roughness`, the total variation of
+            the transmission over its mean) added to the loss, >= 0 (0: off). An aperture is flat
+            with a rim; a pupil that fits the noise of a few training renders is not.
         lr_schedule: ``"cosine"`` (to 10% of lr) or ``"constant"``, after ``warmup_steps``.
         warmup_steps: linear warm-up steps.
         grad_clip: clip the gradient norm to this value (0 = off).
@@ -87,6 +91,7 @@ class TrainSection:
     lr_kernel_scaling: str = "fan_in"
     field_lr_scale: float = 0.25
     ssim_weight: float = 0.0
+    pupil_tv: float = 0.0
     warmup_steps: int = 20
     grad_clip: float = 1.0
     loss: str = "image"
@@ -123,6 +128,11 @@ class TrainConfig:
         if isinstance(t.ssim_weight, bool) or not (isinstance(t.ssim_weight, (int, float)) and math.isfinite(t.ssim_weight)
                                                      and t.ssim_weight >= 0.0):
             raise ValueError(f"train.ssim_weight must be a finite number >= 0, got {t.ssim_weight!r}")
+        if isinstance(t.pupil_tv, bool) or not (isinstance(t.pupil_tv, (int, float)) and math.isfinite(t.pupil_tv) and t.pupil_tv >= 0.0):
+            raise ValueError(f"train.pupil_tv must be a finite number >= 0, got {t.pupil_tv!r}")
+        if t.pupil_tv > 0 and self.model.architecture != "lens":
+            raise ValueError(f"train.pupil_tv needs the lens architecture (it has pupils), "
+                             f"got model.architecture = {self.model.architecture!r}")
         if not (0.0 < t.field_lr_scale <= 1.0):
             raise ValueError(f"train.field_lr_scale must be in (0, 1], got {t.field_lr_scale}")
         if d.crop and (len(d.crop) != 2 or any(isinstance(v, bool) or not isinstance(v, int) or v < 1 for v in d.crop)):

@@ -470,6 +470,8 @@ def _step(net: torch.nn.Module, model: torch.nn.Module, optimizer: torch.optim.O
         group["lr"] = group["lr_scale"] * t.lr * _lr_factor(step, cfg)
     optimizer.zero_grad(set_to_none=True)
     loss = compute_loss(net, x, y, t.loss, window, weights, ssim_weight=t.ssim_weight)
+    if t.pupil_tv > 0:
+        loss = loss + t.pupil_tv * model.pupil_roughness()
     loss.backward()
     finite = torch.tensor(
         [float(torch.isfinite(loss)) * float(all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None))],
