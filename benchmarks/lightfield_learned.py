@@ -1,6 +1,6 @@
 """The learned lens on real light-field defocus that no renderer of ours made (the HCI scene).
 
-    python benchmarks/lightfield_learned.py [--minutes 8] [--aperture polygon:6] [--mitsuba-scenes 4]
+    python benchmarks/lightfield_learned.py [--minutes 8] [--aperture polygon:6] [--mitsuba-scenes 4] [KEY=VALUE ...]
 
 1. Cuts the shared HCI light field (``../shared/data/light_fields/hci_backgammon``, 9 x 9 views
    of 512 x 512) into its four 256 x 256 quadrants and writes each as a scene with
@@ -13,8 +13,9 @@
    ``data_tools.mitsuba --light-field 9`` (256 x 256, a different image formation: path-traced
    pinhole views) and written through the same tool, with the same disparity-to-depth mapping
    and aperture, so that every scene shares one (virtual) lens.
-2. Trains the default network (``configs/quickstart.toml``) on three quadrants and the Mitsuba
-   light fields for ``--minutes``.
+2. Trains the default network (``configs/quickstart.toml`` with 32 + 16 px tiles: the overlap
+   reaches the data's largest CoC radius, ~9 px; then the ``KEY=VALUE`` overrides) on three
+   quadrants and the Mitsuba light fields for ``--minutes``.
 3. Evaluates on the fourth quadrant (``--test-quadrant``, default the bottom right), next to every
    classical baseline of ``neuralbokeh.evaluation``: linear and sRGB PSNR, SSIM, HDR-FLIP, ms/MP.
 4. Draws the learned pupils (sensor centre, right edge, top-right corner) next to the views'
@@ -86,6 +87,7 @@ def main() -> None:
     p.add_argument("--spp", type=int, default=16, help="samples per pixel of each Mitsuba view")
     p.add_argument("--test-quadrant", choices=tuple(QUADRANTS), default="br")
     p.add_argument("--work", type=Path, default=ROOT / "runs" / "lightfield_learned", help="datasets, run and report")
+    p.add_argument("overrides", nargs="*", metavar="KEY=VALUE", help="training config overrides (e.g. model.blocks=40)")
     args = p.parse_args()
     if not HCI.is_dir():
         raise SystemExit(f"error: the HCI light field is not at {HCI} (only the project's machines have it)")
@@ -94,8 +96,9 @@ def main() -> None:
     make_datasets(args.work, args.aperture, args.test_quadrant)
     mitsuba_scenes(args.work, args.mitsuba_scenes, args.aperture, args.spp)
     run("train.py", "configs/quickstart.toml", "--overwrite", f"data.roots=['{args.work / 'train'}']", "data.test_fraction=0.0",
-        "data.cache=true", "train.steps=1000000", "train.lr_schedule='constant'", "train.eval_every=1000000",
-        "train.checkpoint_every=200", f"train.out_dir='{args.work / 'run'}'", "--time-limit", str(args.minutes))
+        "data.cache=true", "model.tile=32", "model.overlap=16", "train.steps=1000000", "train.lr_schedule='constant'",
+        "train.eval_every=1000000",
+        "train.checkpoint_every=200", f"train.out_dir='{args.work / 'run'}'", *args.overrides, "--time-limit", str(args.minutes))
     run("-m", "neuralbokeh.evaluation", "--data", str(args.work / "test"), "--split", "all", "--models",
         str(args.work / "run" / "checkpoint.pt"), "--baselines", "all", "--repeats", "1", "--out", str(args.work / "report"))
     run("-m", "neuralbokeh.evaluation.pupils", str(args.work / "run" / "checkpoint.pt"), "--out",

@@ -66,6 +66,34 @@ def test_point_light_is_the_aperture_at_its_coc_and_keeps_flux():
     assert float(out[20, 27]) < 0.1 * 1000.0  # spread, not left as a spike
 
 
+def _radius_of_gyration(k):
+    y, x = torch.meshgrid(*(torch.arange(n, dtype=k.dtype) for n in k.shape), indexing="ij")
+    s = k.sum()
+    cy, cx = (k * y).sum() / s, (k * x).sum() / s
+    return float(((((y - cy) ** 2 + (x - cx) ** 2) * k).sum() / s).sqrt())
+
+
+@pytest.mark.parametrize("blocks", [6, 12, 24])  # lattice steps of 2, 1 and 1/2 px
+def test_a_point_light_between_band_centres_gets_the_pupil_at_its_own_diameter(blocks):
+    """Between two band centres a pixel's light is the hat blend of the two band kernels. Its
+    size is the pupil's at the pixel's own CoC (radius of gyration within 1 %), and its L1
+    distance from that kernel falls in proportion to the lattice step (<= 7 % per px of step):
+    a finer lattice (``model.blocks``) buys what the scene needs."""
+    m = _model(blocks=blocks)
+    d = band_diameters(C_MAX, blocks)
+    step, lo = float(d[2] - d[1]), blocks // 2
+    for frac in (0.25, 0.5, 0.75):
+        c = float(d[lo] + frac * step)  # 7-8.5 px, never on a centre
+        img = torch.zeros(1, 3, 48, 48, dtype=torch.float64)
+        img[..., 20, 27] = 1000.0
+        coc = torch.full((1, 1, 48, 48), c, dtype=torch.float64)
+        out = _run(m, img, coc)[0, 1] - NORM.decode(NORM.encode(torch.zeros(())))
+        ref = scatter_defocus(img, coc, ApertureModel(Disk()))[0, 1]  # the disk at diameter c
+        assert float(out.sum()) == pytest.approx(1000.0, rel=1e-3)
+        assert _radius_of_gyration(out) == pytest.approx(_radius_of_gyration(ref), rel=0.01), (c, blocks)
+        assert float((out - ref).abs().sum() / ref.sum()) <= 0.07 * step, (c, blocks)
+
+
 @pytest.mark.parametrize("diameter", [3.0, 4.3, 5.0, 7.0])
 def test_every_pupil_cell_under_a_kernel_pixel_counts_alike(diameter):
     """A kernel pixel is the pupil's mean over its footprint: each grid cell inside that footprint

@@ -116,6 +116,10 @@ def test_config_errors(tmp_path):
         load_config(good, ["train.pupil_tv=-1.0"])
     with pytest.raises(ValueError, match=r"train.pupil_tv needs the lens architecture .*'paper'"):
         load_config(good, ["train.pupil_tv=0.1", "model.architecture='paper'"])
+    with pytest.raises(ValueError, match=r"train.pupil_chroma must be a finite number >= 0, got nan"):
+        load_config(good, ["train.pupil_chroma=nan"])
+    with pytest.raises(ValueError, match=r"train.pupil_chroma needs the lens architecture .*'paper'"):
+        load_config(good, ["train.pupil_chroma=0.1", "model.architecture='paper'"])
 
 
 # --- training ------------------------------------------------------------------------------------
@@ -417,15 +421,24 @@ def _fit_one_band(truth: ApertureModel, scale: float, steps: int) -> tuple[torch
     return learned, true_k, d
 
 
-def test_the_pupil_roughness_term_smooths_a_speckled_pupil_in_training(tiny_dataset, tmp_path):
-    """``train.pupil_tv``: a flat disk is barely rough (its rim), speckle is; trained from a
-    speckled pupil, the term leaves it smoother than the same steps without it."""
+def test_a_disk_is_barely_rough_and_not_coloured_at_all():
     contract = Contract(32, 32, Normalization(), 9.0, 9.0)
     disk = build_model(ModelConfig(blocks=4, tile=16, overlap=4, pupil_init="disk"), contract)
     assert float(disk.pupil_roughness().detach()) == pytest.approx(0.14, abs=0.02)
-    rough = {}
+    assert float(disk.pupil_chroma().detach()) == 0.0
+    with torch.no_grad():  # CoC scales 1.04 / 1 / 0.96: the mean absolute deviation of their logs
+        disk.log_channel_scale.copy_(torch.log(torch.tensor([1.04, 1.0, 0.96])))
+    assert float(disk.pupil_chroma().detach()) == pytest.approx(0.0267, abs=2e-4)
+
+
+@pytest.mark.parametrize(("term", "measure", "start"), [("pupil_tv", "pupil_roughness", 1.0), ("pupil_chroma", "pupil_chroma", 0.5)])
+def test_a_pupil_term_smooths_a_speckled_pupil_in_training(tiny_dataset, tmp_path, term, measure, start):
+    """``train.pupil_tv`` / ``train.pupil_chroma``: trained from a lens-wide pupil speckled
+    apart in each channel, the term leaves it smoother / its channels closer than the same
+    steps without it."""
+    seen = {}
     for weight in (0.0, 1.0):
-        cfg = _config(tmp_path / str(weight), tiny_dataset, pupil_tv=weight, lr=0.03, steps=6, eval_every=100)
+        cfg = _config(tmp_path / str(weight), tiny_dataset, **{term: weight}, lr=0.03, steps=6, eval_every=100)
         torch.manual_seed(0)
         with torch.no_grad():
             noise = torch.randn(2, 3, 48, 48, generator=torch.Generator().manual_seed(1))
@@ -443,9 +456,9 @@ def test_the_pupil_roughness_term_smooths_a_speckled_pupil_in_training(tiny_data
         finally:
             loop_module.build_model = real_build
         model, _ = load_model(tmp_path / str(weight) / "run" / "checkpoint.pt")
-        rough[weight] = float(model.pupil_roughness().detach())
-    assert rough[1.0] < 0.9 * rough[0.0], rough
-    assert rough[0.0] > 1.0, rough  # the start really is speckled: measured ~1.5
+        seen[weight] = float(getattr(model, measure)().detach())
+    assert seen[1.0] < 0.9 * seen[0.0], seen
+    assert seen[0.0] > start, seen  # the start really is speckled
 
 
 def test_a_disk_pupil_grows_into_a_larger_square_and_shrinks_to_a_smaller_hexagon():

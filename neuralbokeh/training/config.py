@@ -72,6 +72,11 @@ class TrainSection:
             (:meth:`~neuralbokeh.networks.lens.LensBokeh.pupil_roughness`, the total variation of
             the transmission over its mean) added to the loss, >= 0 (0: off). An aperture is flat
             with a rim; a pupil that fits the noise of a few training renders is not.
+        pupil_chroma: weight of the lens network's colour spread
+            (:meth:`~neuralbokeh.networks.lens.LensBokeh.pupil_chroma`: how far the three
+            channels' pupils and CoC scales differ) added to the loss, >= 0 (0: off). A lens's
+            colours differ only as far as the data shows (lateral and axial colour); channels
+            learned apart from noise put colour fringes on highlights.
         lr_schedule: ``"cosine"`` (to 10% of lr) or ``"constant"``, after ``warmup_steps``.
         warmup_steps: linear warm-up steps.
         grad_clip: clip the gradient norm to this value (0 = off).
@@ -92,6 +97,7 @@ class TrainSection:
     field_lr_scale: float = 0.25
     ssim_weight: float = 0.0
     pupil_tv: float = 0.0
+    pupil_chroma: float = 0.0
     warmup_steps: int = 20
     grad_clip: float = 1.0
     loss: str = "image"
@@ -128,11 +134,13 @@ class TrainConfig:
         if isinstance(t.ssim_weight, bool) or not (isinstance(t.ssim_weight, (int, float)) and math.isfinite(t.ssim_weight)
                                                      and t.ssim_weight >= 0.0):
             raise ValueError(f"train.ssim_weight must be a finite number >= 0, got {t.ssim_weight!r}")
-        if isinstance(t.pupil_tv, bool) or not (isinstance(t.pupil_tv, (int, float)) and math.isfinite(t.pupil_tv) and t.pupil_tv >= 0.0):
-            raise ValueError(f"train.pupil_tv must be a finite number >= 0, got {t.pupil_tv!r}")
-        if t.pupil_tv > 0 and self.model.architecture != "lens":
-            raise ValueError(f"train.pupil_tv needs the lens architecture (it has pupils), "
-                             f"got model.architecture = {self.model.architecture!r}")
+        for name in ("pupil_tv", "pupil_chroma"):
+            w = getattr(t, name)
+            if isinstance(w, bool) or not (isinstance(w, (int, float)) and math.isfinite(w) and w >= 0.0):
+                raise ValueError(f"train.{name} must be a finite number >= 0, got {w!r}")
+            if w > 0 and self.model.architecture != "lens":
+                raise ValueError(f"train.{name} needs the lens architecture (it has pupils), "
+                                 f"got model.architecture = {self.model.architecture!r}")
         if not (0.0 < t.field_lr_scale <= 1.0):
             raise ValueError(f"train.field_lr_scale must be in (0, 1], got {t.field_lr_scale}")
         if d.crop and (len(d.crop) != 2 or any(isinstance(v, bool) or not isinstance(v, int) or v < 1 for v in d.crop)):

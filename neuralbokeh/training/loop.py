@@ -472,6 +472,8 @@ def _step(net: torch.nn.Module, model: torch.nn.Module, optimizer: torch.optim.O
     loss = compute_loss(net, x, y, t.loss, window, weights, ssim_weight=t.ssim_weight)
     if t.pupil_tv > 0:
         loss = loss + t.pupil_tv * model.pupil_roughness()
+    if t.pupil_chroma > 0:
+        loss = loss + t.pupil_chroma * model.pupil_chroma()
     loss.backward()
     finite = torch.tensor(
         [float(torch.isfinite(loss)) * float(all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None))],
