@@ -425,7 +425,7 @@ def test_a_disk_is_barely_rough_and_not_coloured_at_all():
     contract = Contract(32, 32, Normalization(), 9.0, 9.0)
     disk = build_model(ModelConfig(blocks=4, tile=16, overlap=4, pupil_init="disk"), contract)
     assert float(disk.pupil_roughness().detach()) == pytest.approx(0.14, abs=0.02)
-    assert float(disk.pupil_chroma().detach()) == 0.0
+    assert float(disk.pupil_chroma().detach()) == pytest.approx(0.0, abs=1e-6)  # float32 rounding of the grey mean
     with torch.no_grad():  # CoC scales 1.04 / 1 / 0.96: the mean absolute deviation of their logs
         disk.log_channel_scale.copy_(torch.log(torch.tensor([1.04, 1.0, 0.96])))
     assert float(disk.pupil_chroma().detach()) == pytest.approx(0.0267, abs=2e-4)
