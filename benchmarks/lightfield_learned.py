@@ -97,8 +97,8 @@ def main() -> None:
     mitsuba_scenes(args.work, args.mitsuba_scenes, args.aperture, args.spp)
     run("train.py", "configs/quickstart.toml", "--overwrite", f"data.roots=['{args.work / 'train'}']", "data.test_fraction=0.0",
         "data.cache=true", "model.tile=32", "model.overlap=16", "train.steps=1000000", "train.lr_schedule='constant'",
-        "train.eval_every=1000000",
-        "train.checkpoint_every=200", f"train.out_dir='{args.work / 'run'}'", *args.overrides, "--time-limit", str(args.minutes))
+        "train.eval_every=1000000", "train.checkpoint_every=200", f"train.out_dir='{args.work / 'run'}'", *args.overrides,
+        "--time-limit", str(args.minutes))
     run("-m", "neuralbokeh.evaluation", "--data", str(args.work / "test"), "--split", "all", "--models",
         str(args.work / "run" / "checkpoint.pt"), "--baselines", "all", "--repeats", "1", "--out", str(args.work / "report"))
     run("-m", "neuralbokeh.evaluation.pupils", str(args.work / "run" / "checkpoint.pt"), "--out",

@@ -457,7 +457,7 @@ def test_a_pupil_term_smooths_a_speckled_pupil_in_training(tiny_dataset, tmp_pat
             loop_module.build_model = real_build
         model, _ = load_model(tmp_path / str(weight) / "run" / "checkpoint.pt")
         seen[weight] = float(getattr(model, measure)().detach())
-    assert seen[1.0] < 0.9 * seen[0.0], seen
+    assert seen[1.0] < 0.9 * seen[0.0], seen  # measured 1.88 against 2.16 (rough), 0.52 against 0.63 (colour)
     assert seen[0.0] > start, seen  # the start really is speckled
 
 

@@ -436,27 +436,28 @@ class LensBokeh(nn.Module):
             return True
         return self.vignette is not None and bool(self.vignette.detach()[:2].abs().max() > 0)
 
-    def _node_transmissions(self) -> torch.Tensor:
-        """``(g^2, 2, 3, P, P)``: the pupils' transmissions at the field grid's nodes."""
+    def node_transmissions(self) -> torch.Tensor:
+        """``(g^2, 2, 3, P, P)``: the pupils' transmissions at the field grid's nodes, what
+        :meth:`pupil_roughness` and :meth:`pupil_chroma` measure (pass it to both to compute it once)."""
         g = self.config.field_grid
         axis = torch.linspace(-1.0, 1.0, g, device=self.pupil_shared.device, dtype=self.pupil_shared.dtype) if g > 1 \
             else self.pupil_shared.new_zeros(1)
         nodes = torch.stack(torch.broadcast_tensors(axis[None, :], axis[:, None]), dim=-1).reshape(1, -1, 2)
         return torch.exp(self.pupils_at(nodes))[0]
 
-    def pupil_roughness(self) -> torch.Tensor:
+    def pupil_roughness(self, t: torch.Tensor | None = None) -> torch.Tensor:
         """Scalar: the pupils' total variation over their mean transmission, ``(mean |d t / d u|
         + mean |d t / d v|) / mean t`` per grid step, averaged over the pupils at the field grid's
         nodes (side, channel). About 0.13 for a flat disk (its rim); a pupil of speckle is 10x that."""
-        t = self._node_transmissions()
+        t = self.node_transmissions() if t is None else t
         tv = (t[..., :, 1:] - t[..., :, :-1]).abs().mean(dim=(-2, -1)) + (t[..., 1:, :] - t[..., :-1, :]).abs().mean(dim=(-2, -1))
         return (tv / t.mean(dim=(-2, -1)).clamp_min(_EPS)).mean()
 
-    def pupil_chroma(self) -> torch.Tensor:
+    def pupil_chroma(self, t: torch.Tensor | None = None) -> torch.Tensor:
         """Scalar, 0 for an achromatic lens: how far the colour channels' pupils differ, ``mean_c
         |t_c - mean_c t| / mean t`` over each pupil at the field grid's nodes (side), plus the
         mean absolute deviation of the log CoC scales from their mean (a relative size)."""
-        t = self._node_transmissions()  # (nodes, side, channel, P, P)
+        t = self.node_transmissions() if t is None else t  # (nodes, side, channel, P, P)
         grey = t.mean(dim=2, keepdim=True)
         pupils = ((t - grey).abs().mean(dim=(2, 3, 4)) / grey.mean(dim=(2, 3, 4)).clamp_min(_EPS)).mean()
         return pupils + (self.log_channel_scale - self.log_channel_scale.mean()).abs().mean()

@@ -470,10 +470,12 @@ def _step(net: torch.nn.Module, model: torch.nn.Module, optimizer: torch.optim.O
         group["lr"] = group["lr_scale"] * t.lr * _lr_factor(step, cfg)
     optimizer.zero_grad(set_to_none=True)
     loss = compute_loss(net, x, y, t.loss, window, weights, ssim_weight=t.ssim_weight)
-    if t.pupil_tv > 0:
-        loss = loss + t.pupil_tv * model.pupil_roughness()
-    if t.pupil_chroma > 0:
-        loss = loss + t.pupil_chroma * model.pupil_chroma()
+    if t.pupil_tv > 0 or t.pupil_chroma > 0:
+        nodes = model.node_transmissions()  # once for both priors
+        if t.pupil_tv > 0:
+            loss = loss + t.pupil_tv * model.pupil_roughness(nodes)
+        if t.pupil_chroma > 0:
+            loss = loss + t.pupil_chroma * model.pupil_chroma(nodes)
     loss.backward()
     finite = torch.tensor(
         [float(torch.isfinite(loss)) * float(all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None))],
