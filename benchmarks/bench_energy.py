@@ -2,24 +2,27 @@
 sum-to-saturation or the fill gains or loses it, on a Mitsuba set's held-out split.
 
     python benchmarks/bench_energy.py [--data data/mitsuba_lens] [--tile 32 --overlap 16]
+    python benchmarks/bench_energy.py --data runs/lightfield_learned/test --split all   # the light field's held-out quadrant
 
 The data: ``benchmarks/mitsuba_learned.py``'s set (render it with that script first; a square
-frame, a declared aperture). Nothing is trained, so the lens is known: the untrained lens
-network given the data's own aperture (``pupil_init = "aperture"``, its cat-eye set from the
-declared one) and the exact-aperture scatter (the oracle), each as it is and with one of its
-parts changed:
+frame, a declared aperture), or any such folder, e.g. ``benchmarks/lightfield_learned.py``'s
+held-out quadrant (``--split all``: every scene of the folder). Nothing is trained, so the lens
+is known: the untrained lens network given the data's own aperture (``pupil_init =
+"aperture"``, its cat-eye set from the declared one) and the exact-aperture scatter (the
+oracle), each as it is and with one of its parts changed, and the light-field patent's buckets
+with the same aperture:
 
 * the buckets' ``occlusion_margin_px`` at 1 and 4 px (default 2);
 * ``"over"``: near light hides what lies behind it in proportion to its coverage (the layered
   "over"), instead of sum-to-saturation (visible light fills the room the nearer light leaves);
-* the fill: ``fill = "normalize"``, and the fill before 2026-12-03 (occluders only at 4 px steps
-  within the blur's reach, the pull-push of the light itself, each visible pixel its own sharp
-  value).
+* the fill: ``fill = "normalize"``, ``"far_light"`` (at its starting gain, 1), and the fill
+  before 2026-12-03 (occluders only at 4 px steps within the blur's reach, the pull-push of the
+  light itself, each visible pixel its own sharp value).
 
-Printed per row: held-out linear PSNR (both images divided by the truth's peak, the evaluation's
-``psnr_linear``), and around the highlights (AIF pixels brighter than 20x the frame's median,
-grown by the largest CoC radius) the ratio of the rendered to the true light: mean, min and max
-over the samples that have highlights.
+Printed per row: held-out linear PSNR (both images divided by the truth's peak, the
+evaluation's ``psnr_linear``), and around the highlights (AIF pixels brighter than 20x the
+frame's median, grown by the largest CoC radius) the ratio of the rendered to the true light:
+mean, min and max over the samples that have highlights.
 """
 
 from __future__ import annotations
@@ -42,6 +45,7 @@ from neuralbokeh.networks import ModelConfig, build_model  # noqa: E402
 from neuralbokeh.networks.lens import LensBokeh  # noqa: E402
 from neuralbokeh.ops import holes  # noqa: E402
 from neuralbokeh.render import scatter_defocus  # noqa: E402
+from neuralbokeh.render.buckets import bucket_gather  # noqa: E402
 from neuralbokeh.training.loop import Samples, oracle_apertures  # noqa: E402
 
 
@@ -95,7 +99,7 @@ def _rows(ds: FocalStackDataset, args: argparse.Namespace) -> dict[str, Callable
     norm = ds.normalization
     nets = {name: _network(ds, args, **kw) for name, kw in (
         ("default", {}), ("margin 1", {"occlusion_margin_px": 1.0}), ("margin 4", {"occlusion_margin_px": 4.0}),
-        ("normalize", {"fill": "normalize"}))}
+        ("normalize", {"fill": "normalize"}), ("far light", {"fill": "far_light"}))}
     exact = oracle_apertures(ds)
 
     def net(name: str, *patches: tuple[object, str, object]) -> Callable:
@@ -118,10 +122,12 @@ def _rows(ds: FocalStackDataset, args: argparse.Namespace) -> dict[str, Callable
         "network, over": net("default", (LensBokeh, "composite", composite_over)),
         "network, fill normalize": net("normalize"),
         "network, fill before": net("default", *old_fill),
+        "network, fill far_light": net("far light"),
         "oracle": oracle(),
         "oracle, over": oracle(occlusion="over"),
         "oracle, fill normalize": oracle(fill="normalize"),
         "oracle, fill before": oracle(*old_fill),
+        "buckets (exact aperture)": lambda x, window, lin, coc, i: bucket_gather(lin, coc, exact[ds.items[i][0]]),
     }
 
 
@@ -129,11 +135,12 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--data", type=Path, default=ROOT / "data" / "mitsuba_lens")
     p.add_argument("--test-fraction", type=float, default=0.25)
+    p.add_argument("--split", choices=("test", "all"), default="test", help="'all': every scene of --data (a folder of held-out scenes)")
     p.add_argument("--tile", type=int, default=32)
     p.add_argument("--overlap", type=int, default=16)
     args = p.parse_args()
     torch.set_num_threads(2)
-    ds = FocalStackDataset([args.data], "test", args.test_fraction, 0)
+    ds = FocalStackDataset([args.data], args.split, args.test_fraction, 0)
     if ds.contract().aperture is None or ds.contract().size[0] != ds.contract().size[1]:
         raise SystemExit(f"{args.data}: needs square frames with a declared aperture (mitsuba_learned.py's set)")
     samples, norm, scale = Samples(ds, cache=False), ds.normalization, ds.coc_scale_px

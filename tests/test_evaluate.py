@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from neuralbokeh.core.apertures import ApertureModel, Polygon, ViewGrid
-from neuralbokeh.evaluation.evaluate import BASELINES, main
+from neuralbokeh.evaluation.evaluate import BASELINES, main, model_labels
 from neuralbokeh.evaluation.metrics import flip_hdr, image_metrics, pareto_front, tonemap_srgb
 from neuralbokeh.render import scatter_defocus
 from neuralbokeh.render.baselines import gather_defocus, gaussian_defocus, pseudo_ray_trace
@@ -171,3 +171,12 @@ def test_the_pupil_picture_shows_the_learned_pupil_beside_the_declared_aperture(
         pupils_main([str(trained_checkpoint), "--out", str(out)])
     with pytest.raises(ValueError, match="only the lens network learns pupils"):
         pupils_main([str(trained_paper_checkpoint), "--out", str(tmp_path / "paper.png")])
+
+
+def test_models_that_share_a_file_name_get_rows_of_their_own(tmp_path):
+    # two runs' checkpoint.pt once shared one row: the second's scores replaced the first's
+    a, b, c = tmp_path / "a" / "run" / "checkpoint.pt", tmp_path / "b" / "run" / "checkpoint.pt", tmp_path / "m.onnx"
+    assert model_labels([a, b, c]) == ["a/run/checkpoint.pt", "b/run/checkpoint.pt", "m.onnx"]
+    assert model_labels([c]) == ["m.onnx"]
+    with pytest.raises(ValueError, match="names one file twice"):
+        model_labels([c, tmp_path / "." / "m.onnx"])

@@ -254,6 +254,27 @@ def test_rows_export_is_the_direct_export(busy_checkpoint, tmp_path):
     assert max(half["parity"].values()) <= 2e-2
 
 
+def test_the_far_light_fill_exports_with_its_learned_gain(busy_checkpoint, tmp_path):
+    """``fill = "far_light"``: the graph takes the far bucket's mean colour for up to the learned
+    gain times its coverage, as ``LensBokeh.composite``; the gain changes the output."""
+    data = load_checkpoint(busy_checkpoint)
+    data["model_config"] = {**data["model_config"], "fill": "far_light"}
+    outs = {}
+    for gain in (0.0, 3.0):
+        raw = -30.0 if gain == 0.0 else float(np.log(np.expm1(gain)))  # the gain is the softplus of the parameter
+        data["model_state"] = {**data["model_state"], "fill_gain": torch.tensor([raw])}
+        ckpt = tmp_path / f"far{gain:g}.pt"
+        save_checkpoint(ckpt, {k: v for k, v in data.items() if k not in ("format", "format_version", "package_version")})
+        report = export_checkpoint(ckpt, tmp_path / f"far{gain:g}.onnx", kernels="direct", threads=1)
+        assert max(report["parity"].values()) <= 1e-4, report["parity"]
+        model, _ = load_model(ckpt)
+        x = calibration_inputs(*model.contract.size, count=2, seed=6)
+        outs[gain] = _run_onnx(tmp_path / f"far{gain:g}.onnx", x[:, :3].numpy(), x[:, 3:].numpy())
+        with torch.no_grad():
+            assert np.abs(outs[gain] - model(x).numpy()).max() < 1e-4
+    assert np.abs(outs[3.0] - outs[0.0]).max() > 1e-3  # the far light is used where coverage is short
+
+
 def test_an_export_may_choose_its_tiles_and_only_the_field_sampling_changes(busy_checkpoint, tmp_path):
     """Tile cores are an export setting: with one pupil over the whole sensor a file with larger
     tiles renders what the trained tiles render; with a field-dependent pupil it samples the field

@@ -1,5 +1,7 @@
 """The default (lens) network: what its untrained form must already get right, physically."""
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -9,7 +11,7 @@ from neuralbokeh.core.bands import band_diameters
 from neuralbokeh.core.contract import Contract
 from neuralbokeh.core.normalization import Normalization
 from neuralbokeh.networks import ModelConfig, build_model
-from neuralbokeh.networks.lens import PUPIL_EXTENT, band_gates, band_scales, bucket_weights, field_weights, reduce_kernel
+from neuralbokeh.networks.lens import PUPIL_EXTENT, band_gates, band_scales, bucket_weights, far_light_fill, field_weights, reduce_kernel
 from neuralbokeh.render import scatter_defocus, scatter_layers
 from neuralbokeh.render.reference import reference_scatter_layers
 
@@ -367,11 +369,71 @@ def test_what_a_blurred_foreground_uncovers_is_the_background_not_the_foreground
     assert err["background"] < 0.6 * err["normalize"], err  # measured: 0.39 against 0.85
 
 
+def test_the_far_light_fill_takes_the_far_mean_up_to_its_gain_and_never_spreads_a_highlight():
+    hole = torch.tensor([0.5, 0.5, 0.5, 0.0, 0.5])
+    cover = torch.tensor([0.6, 0.1, 1e-3, 0.4, 0.0])
+    color = cover * torch.tensor([2.0, 2.0, 1e4, 2.0, 7.0])  # premultiplied: mean colours 2, 2, a 1e4 highlight, 2, none
+    bg = torch.full((5,), 0.3)
+    got = far_light_fill(hole, color, cover, bg, torch.tensor(1.0))
+    # cover >= hole: the far mean fills it all; cover < hole: the far light once more, the background the rest
+    want = torch.tensor([0.5 * 2.0, 0.1 * 2.0 + 0.4 * 0.3, 10.0 + (0.5 - 1e-3) * 0.3, 0.0, 0.5 * 0.3])
+    assert torch.allclose(got, want, rtol=1e-5)
+    assert float(got[2]) < 10.2  # the highlight's 1e-3 of coverage adds its own 10 again, not 1e4 x 0.5
+    assert torch.equal(far_light_fill(hole, color, cover, bg, torch.tensor(0.0)), hole * bg)  # gain 0: the background fill
+    gain = torch.tensor(2.0, requires_grad=True)
+    cover = cover.clone().requires_grad_(True)
+    far_light_fill(hole, cover * 2.0, cover, bg, gain).sum().backward()
+    assert torch.isfinite(cover.grad).all() and float(gain.grad) > 0  # no 1 / cover blow-up; the gain learns
+
+
+def test_behind_a_blurred_foreground_the_far_light_fills_closer_to_the_layered_truth():
+    # a bright square blurred in front (-12 px) over a textured background blurred behind (+8 px),
+    # the truth rendered in layers with the whole background: what the square's blur uncovers is
+    # the blurred background, which the far bucket holds and the background's pull-push only guesses
+    yy, xx = torch.meshgrid(torch.arange(48.0), torch.arange(48.0), indexing="ij")
+    texture = 0.1 + 0.4 * ((torch.sin(xx / 2.5) > 0) & (torch.sin(yy / 3.1) > 0)).double()
+    bg = texture[None, None].expand(1, 3, 48, 48) * torch.tensor([1.0, 0.7, 1.0], dtype=torch.float64)[:, None, None]
+    front = torch.zeros(1, 1, 48, 48, dtype=torch.float64)
+    front[..., 16:32, 16:32] = 1.0
+    img = torch.where(front > 0, torch.full_like(bg, 2.0), bg)
+    coc = torch.where(front > 0, -12.0, 8.0)
+    truth = scatter_layers(torch.cat([bg, img * front]), torch.cat([torch.ones_like(coc), front]), [8.0, -12.0])
+    around = (slice(None), slice(8, 40), slice(8, 40))
+    err = {}
+    for name, gain in (("background", None), ("far light 1", 1.0), ("far light 4", 4.0)):
+        m = _model(fill="background" if gain is None else "far_light")
+        if gain is not None:
+            m.fill_gain.data.fill_(math.log(math.expm1(gain)))  # the gain is the softplus of the parameter
+        err[name] = float((_run(m, img, coc)[0][around] - truth[around]).pow(2).mean())
+    # measured: 2.19e-3 (background), 1.44e-3 (gain 1), 1.05e-3 (gain 4)
+    assert err["far light 1"] < 0.8 * err["background"] and err["far light 4"] < err["far light 1"], err
+
+
+def test_the_far_light_fills_gain_starts_at_one_and_learns_from_the_loss():
+    m = _model(fill="far_light").train()
+    assert float(m.far_light_gain()) == pytest.approx(1.0, rel=1e-6) and _model().fill_gain is None  # the other fills have none
+    with pytest.raises(ValueError, match="only a 'far_light' fill has a gain"):
+        _model().far_light_gain()
+    img = torch.full((1, 3, 48, 48), 0.2, dtype=torch.float64)
+    img[..., 16:32, 16:32] = 2.0
+    coc = torch.full((1, 1, 48, 48), 8.0, dtype=torch.float64)
+    coc[..., 16:32, 16:32] = -12.0
+    x = torch.cat([NORM.encode(img), coc / C_MAX], 1).float()
+    m(x).square().mean().backward()
+    assert m.fill_gain.grad is not None and float(m.fill_gain.grad.abs()) > 0
+    m.fill_gain.data.fill_(-20.0)  # a gain of ~2e-9: softplus still passes a gradient, a clamp at 0 would not
+    m.zero_grad()
+    m(x).square().mean().backward()
+    assert float(m.fill_gain.grad.abs()) > 0
+    assert any(p is m.fill_gain for p in m.parameter_roles()["other"])  # trained at the lens-wide rate
+
+
 def test_the_fill_defaults_to_the_background_and_refuses_unknown_fills():
     d = ModelConfig(blocks=2).to_dict()
     assert d["fill"] == "background"
     del d["fill"]
     assert ModelConfig.from_dict(d).fill == "background"  # left out: the dataclass's default
+    assert ModelConfig(blocks=2, fill="far_light").fill == "far_light"
     with pytest.raises(ValueError, match="fill must be one of"):
         ModelConfig(blocks=2, fill="inpaint")
 

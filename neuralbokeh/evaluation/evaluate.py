@@ -97,6 +97,23 @@ class LoadedModel:
     split: dict[str, Any] | None
 
 
+def model_labels(paths: list[Path]) -> list[str]:
+    """Each model's row name: its file name, with as many parent folders as it takes to tell
+    apart models that share one (``a/run/checkpoint.pt`` and ``b/run/checkpoint.pt`` ->
+    ``a/run/checkpoint.pt``, ``b/run/checkpoint.pt``), so no row replaces another."""
+    if len({p.resolve() for p in paths}) < len(paths):
+        raise ValueError(f"--models names one file twice: {[str(p) for p in paths]}")
+    parts = [p.resolve().parts for p in paths]
+    depth = [1] * len(paths)
+    while True:
+        labels = ["/".join(q[-d:]) for q, d in zip(parts, depth)]
+        clash = [i for i, label in enumerate(labels) if labels.count(label) > 1]
+        if not clash:
+            return labels
+        for i in clash:
+            depth[i] += 1
+
+
 def load_model_method(path: Path, threads: int) -> LoadedModel:
     """A trained model: ``.onnx`` (onnxruntime, in-focus tiles and unused bands skipped; its
     metadata read once by the runtime) or a ``.pt`` checkpoint (read once)."""
@@ -296,7 +313,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         prepare_output(args.out / "report.json", args.overwrite)  # before the scoring, which can take minutes
         require_sound(args.data)
-        loaded = {str(m.name): load_model_method(m, args.threads) for m in args.models}
+        loaded = {label: load_model_method(m, args.threads) for label, m in zip(model_labels(args.models), args.models)}
         test_fraction, split_seed = split_of_models(list(loaded.values()), args.test_fraction, args.split_seed)
         ds = FocalStackDataset(args.data, args.split, test_fraction if args.split != "all" else 0.0, split_seed, normalize=False)
         if len(ds) == 0:

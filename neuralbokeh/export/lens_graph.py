@@ -339,10 +339,11 @@ def _passthrough(b: GraphBuilder, k: int, window: str, src: np.ndarray, norm: No
     return _branch(g, g.op("Reshape", parts, g.c("flat", [1, -1], np.int64)), f"t{k}_pass")
 
 
-def _composite_buckets(top: Nodes, canvas: str, x: str, cfg: ModelConfig, contract: Contract, plan: BandPlan) -> str:
+def _composite_buckets(top: Nodes, canvas: str, x: str, cfg: ModelConfig, contract: Contract, plan: BandPlan,
+                       fill_gain: float | None) -> str:
     """The reassembled light ``(B, 18, H, W)`` (near / same / far buckets of colour and cover)
     composited front to back, and what they leave uncovered filled: linear RGB ``(B, 3, H, W)``
-    (``LensBokeh.composite``)."""
+    (``LensBokeh.composite``; ``fill_gain``: its learned gain with ``fill = "far_light"``)."""
     b = top.b
     one, zero, eps = b.const("one", 1.0), b.const("zero", 0.0), b.const("eps", _EPS)
     buckets = [top.op("Slice", canvas, b.const(f"b{q}c0", [6 * q], np.int64), b.const(f"b{q}c2", [6 * q + 6], np.int64),
@@ -356,17 +357,26 @@ def _composite_buckets(top: Nodes, canvas: str, x: str, cfg: ModelConfig, contra
         out = lit if out is None else top.op("Add", out, lit)
         # saturated is exactly 1 (taken + cover * frac can round to 1 - ulp, leaking a 1e4 highlight behind)
         taken = top.op("Min", cover if taken is None else top.op("Add", taken, cover), one)
+    if cfg.fill == "normalize":
+        return top.op("Max", top.op("Div", out, top.op("Max", taken, eps)), zero)
+    hole = top.op("Max", top.op("Sub", one, taken), zero)
+    background = hidden_background_graph(top, x, contract, plan.fill_radius_px)
     if cfg.fill == "background":
-        hole = top.op("Sub", one, taken)
-        fill = hidden_background_graph(top, x, contract, plan.fill_radius_px)
-        return top.op("Max", top.op("Add", out, top.op("Mul", hole, fill)), zero)
-    return top.op("Max", top.op("Div", out, top.op("Max", taken, eps)), zero)
+        return top.op("Max", top.op("Add", out, top.op("Mul", hole, background)), zero)
+    if fill_gain is None:
+        raise ValueError("a far_light fill needs the network's fill_gain")
+    # far_light_fill: min(hole / cover, gain) colour + (hole - min(hole, gain cover)) background, of the far bucket
+    gain = b.const("fill_gain", float(max(fill_gain, 0.0)))
+    far = top.op("Mul", top.op("Min", top.op("Div", hole, top.op("Max", cover, eps)), gain), color)
+    rest = top.op("Sub", hole, top.op("Min", hole, top.op("Mul", gain, cover)))
+    return top.op("Max", top.op("Add", top.op("Add", out, far), top.op("Mul", rest, background)), zero)
 
 
 def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: ModelConfig, contract: Contract,
                      fp16: bool = False, opset: int = 18, metadata: Mapping[str, str] | None = None,
                      scales: Mapping[int, int] | None = None, rows: bool = False,
-                     flow: tuple[tuple[np.ndarray, np.ndarray, np.ndarray], Mapping[int, np.ndarray]] | None = None) -> onnx.ModelProto:
+                     flow: tuple[tuple[np.ndarray, np.ndarray, np.ndarray], Mapping[int, np.ndarray]] | None = None,
+                     fill_gain: float | None = None) -> onnx.ModelProto:
     """The full-image ONNX model of a ``LensBokeh``.
 
     Args:
@@ -385,6 +395,7 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: Mod
             ``((nodes (2, 3, Gy, Gx), rows (H, Gy), cols (W, Gx)), {n: (2, 3)} slopes)``; band n's
             scattered colour at pixel (i, j) is multiplied by ``1 - slope x drift``, the drift
             ``rows[i] . nodes . cols[j]``. None: no drift (gains 1).
+        fill_gain: ``LensBokeh.fill_gain`` (``fill = "far_light"`` only).
     """
     if opset < 18:
         raise ValueError(f"the lens graph needs opset >= 18 (Col2Im), got {opset}")
@@ -427,7 +438,7 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: Mod
                    strides=[t, t])
     canvas = top.op("Slice", total, b.const("crop_start", [t_o, t_o], np.int64), b.const("crop_end", [t_o + h, t_o + w], np.int64),
                     "axes_hw")
-    linear = _composite_buckets(top, canvas, x, cfg, contract, plan)
+    linear = _composite_buckets(top, canvas, x, cfg, contract, plan, fill_gain)
     shifted = top.op("Add", linear, b.const("offset", float(contract.normalization.offset)))
     scale = b.const("scale", float(contract.normalization.scale))
     top.nodes.append(helper.make_node("Div", [top.op("Sub", shifted, scale), top.op("Add", shifted, scale)], ["defocus"],

@@ -16,7 +16,7 @@ from ..core.tiling import TileLayout
 
 ARCHITECTURES = ("lens", "paper")
 PUPIL_INITS = ("disk", "gaussian", "aperture")
-FILLS = ("background", "normalize")
+FILLS = ("background", "normalize", "far_light")
 KERNEL_SIZES = ("growing", "fixed3")
 TILINGS = ("overlap", "none", "no_overlap")
 HEADS = ("identity", "paper")
@@ -57,7 +57,9 @@ class ModelConfig:
             to "in front of / behind" the receiving pixel (lens), > 0.
         fill: what the lens architecture puts where its coverage falls short (what a blurred
             foreground uncovers): ``"background"`` (the visible background around the occluder,
-            as the reference renderer's default) or ``"normalize"`` (divide by the coverage).
+            as the reference renderer's default), ``"normalize"`` (divide by the coverage) or
+            ``"far_light"`` (the mean colour of the light from behind that reaches the pixel, for
+            up to a learned gain times that light's own coverage, the rest the background).
         (``features``, ``head`` and the FFT thresholds: paper only; ``pupil_*``,
         ``field_grid``, ``vignetting``, ``occlusion_margin_px``, ``fill``: lens only; the rest: both.)
     """

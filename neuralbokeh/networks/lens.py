@@ -43,7 +43,10 @@ The skeleton of the paper, given what a lens blur is made of:
    (light-field patent). Coverage that stays below 1 (where a blurred foreground uncovers what
    it hides in the AIF) is filled with the visible background around the occluder
    (``fill = "background"``, as the reference renderer; ``"normalize"`` divides by the
-   coverage instead).
+   coverage instead; ``"far_light"`` first takes the mean colour of the far bucket, the blurred
+   light from behind that reaches the pixel, for up to a learned gain times that
+   light's own coverage: the amplification is bounded, so a far highlight seen through a sliver
+   adds at most ``fill_gain`` times its own light).
 6. *Reassembly.* Each tile scatters the light of its own core (cores partition the image; at
    the image border a core reaches to its window's edge), into its whole window; windows are
    summed into place (light adds, so a tile's blur crosses into its neighbours' cores exactly as
@@ -114,6 +117,21 @@ def bucket_weights(band_coc: float, receiver_coc: torch.Tensor, margin: float) -
     near = ((-delta - margin) / margin).clamp(0.0, 1.0)
     far = ((delta - margin) / margin).clamp(0.0, 1.0)
     return torch.stack([near, 1.0 - near - far, far])
+
+
+def far_light_fill(hole: torch.Tensor, far_color: torch.Tensor, far_cover: torch.Tensor, background: torch.Tensor,
+                   gain: torch.Tensor) -> torch.Tensor:
+    """Light for the uncovered part ``hole`` ``(B, 3, H, W)`` of each pixel: the far bucket's
+    mean colour ``far_color / far_cover`` (premultiplied colour and coverage, ``(B, 3, H, W)``)
+    over ``min(hole, gain * far_cover)``, the visible ``background`` over the rest.
+
+    The far bucket is the blurred light from behind the pixel's surface that reaches it: what
+    the views a foreground's blur uncovers see, where the background's pull-push only guesses
+    it. Its weight is bounded by its own coverage, so the fill adds at most ``gain`` times the
+    far light already there (a far highlight seen through a sliver is not spread over the hole).
+    """
+    # min(hole, gain * cover) * (colour / cover), written so no term grows as 1 / cover
+    return torch.minimum(hole / far_cover.clamp_min(_EPS), gain) * far_color + (hole - torch.minimum(hole, gain * far_cover)) * background
 
 
 def reduction_matrix(k: int, s: int, dtype: torch.dtype = torch.float64, device: torch.device | None = None) -> torch.Tensor:
@@ -338,6 +356,9 @@ class LensBokeh(nn.Module):
         # clipping nothing on the axis at the start: the circle 3 grid steps outside the aperture's rim
         rim = 1.0 + 3.0 * pupil_step(cfg.pupil_size)
         self.vignette = nn.Parameter(torch.tensor([0.0, 0.0, math.log(rim)])) if cfg.vignetting else None
+        # how much of a hole the far light fills, in units of its own coverage: softplus of this
+        # (1 at the start), never stuck at a bound as a clamped gain would be once below it
+        self.fill_gain = nn.Parameter(torch.tensor([math.log(math.expm1(1.0))])) if cfg.fill == "far_light" else None
         self._masks: dict[tuple[int, ...], torch.Tensor] = {}
         reach = overlap_for(c_train)
         if cfg.tiling == "overlap" and cfg.overlap < reach:
@@ -606,7 +627,8 @@ class LensBokeh(nn.Module):
     def composite(self, acc: torch.Tensor, background: torch.Tensor | None = None) -> torch.Tensor:
         """Buckets ``(B, 3, 6, H, W)`` -> linear RGB ``(B, 3, H, W)``: near over same over far,
         sum-to-saturation per channel; remaining holes filled with ``background`` ``(B, 3, H, W)``
-        (``fill = "background"``) or by normalising."""
+        (``fill = "background"``; ``"far_light"``: the far bucket's mean colour first, see
+        :func:`far_light_fill`) or by normalising."""
         color, cover = acc[:, :, :3], acc[:, :, 3:].clamp_min(0.0)
         out = torch.zeros_like(color[:, 0])
         taken = torch.zeros_like(out)
@@ -618,9 +640,19 @@ class LensBokeh(nn.Module):
             # = taken + a * frac, but exactly 1 once saturated: a rounding of 1 - ulp would let
             # a 1e4 highlight behind a covered surface leak through
             taken = torch.clamp_max(taken + a, 1.0)
-        if background is not None:
-            return out + (1.0 - taken).clamp_min(0.0) * background
-        return out / taken.clamp_min(_EPS)
+        if background is None:
+            return out / taken.clamp_min(_EPS)
+        hole = (1.0 - taken).clamp_min(0.0)
+        if self.fill_gain is not None:
+            return out + far_light_fill(hole, color[:, 2], cover[:, 2], background, self.far_light_gain())
+        return out + hole * background
+
+    def far_light_gain(self) -> torch.Tensor:
+        """The far-light fill's gain (``fill = "far_light"``), > 0: at most this many times its own
+        coverage of a hole is filled with the far light's mean colour."""
+        if self.fill_gain is None:
+            raise ValueError(f"model.fill is {self.config.fill!r}: only a 'far_light' fill has a gain")
+        return F.softplus(self.fill_gain)
 
     def forward(self, x: torch.Tensor, window: torch.Tensor | None = None, return_tiles: bool = False,
                 tile_active: torch.Tensor | None = None, scales: dict[int, int] | None = None,
@@ -636,7 +668,7 @@ class LensBokeh(nn.Module):
         b, n_t, _, _, win, _ = acc.shape
         h, w = x.shape[-2:]
         layout = self.layout(h, w)
-        background = self.hidden(x, plan_coc_px) if cfg.fill == "background" else None
+        background = self.hidden(x, plan_coc_px) if cfg.fill != "normalize" else None
         if return_tiles:
             bg = None if background is None else tile(background, layout).view(b * n_t, 3, win, win)
             out = self.composite(acc.view(b * n_t, 3, 6, win, win), bg)
