@@ -411,7 +411,7 @@ def test_behind_a_blurred_foreground_the_far_light_fills_closer_to_the_layered_t
 
 def test_the_far_light_fills_gain_starts_at_one_and_learns_from_the_loss():
     m = _model(fill="far_light").train()
-    assert float(m.far_light_gain()) == pytest.approx(1.0, rel=1e-6) and _model().fill_gain is None  # the other fills have none
+    assert float(m.far_light_gain().detach()) == pytest.approx(1.0, rel=1e-6) and _model().fill_gain is None  # the other fills have none
     with pytest.raises(ValueError, match="only a 'far_light' fill has a gain"):
         _model().far_light_gain()
     img = torch.full((1, 3, 48, 48), 0.2, dtype=torch.float64)
