@@ -366,7 +366,7 @@ def _composite_buckets(top: Nodes, canvas: str, x: str, cfg: ModelConfig, contra
     if fill_gain is None:
         raise ValueError("a far_light fill needs the network's fill_gain")
     # far_light_fill: min(hole / cover, gain) colour + (hole - min(hole, gain cover)) background, of the far bucket
-    gain = b.const("fill_gain", float(max(fill_gain, 0.0)))
+    gain = b.const("fill_gain", float(fill_gain))
     far = top.op("Mul", top.op("Min", top.op("Div", hole, top.op("Max", cover, eps)), gain), color)
     rest = top.op("Sub", hole, top.op("Min", hole, top.op("Mul", gain, cover)))
     return top.op("Max", top.op("Add", top.op("Add", out, far), top.op("Mul", rest, background)), zero)
@@ -395,7 +395,7 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: Mod
             ``((nodes (2, 3, Gy, Gx), rows (H, Gy), cols (W, Gx)), {n: (2, 3)} slopes)``; band n's
             scattered colour at pixel (i, j) is multiplied by ``1 - slope x drift``, the drift
             ``rows[i] . nodes . cols[j]``. None: no drift (gains 1).
-        fill_gain: ``LensBokeh.fill_gain`` (``fill = "far_light"`` only).
+        fill_gain: ``LensBokeh.far_light_gain()`` (``fill = "far_light"`` only), > 0.
     """
     if opset < 18:
         raise ValueError(f"the lens graph needs opset >= 18 (Col2Im), got {opset}")

@@ -46,7 +46,7 @@ The skeleton of the paper, given what a lens blur is made of:
    coverage instead; ``"far_light"`` first takes the mean colour of the far bucket, the blurred
    light from behind that reaches the pixel, for up to a learned gain times that
    light's own coverage: the amplification is bounded, so a far highlight seen through a sliver
-   adds at most ``fill_gain`` times its own light).
+   adds at most the gain times its own light; :meth:`LensBokeh.far_light_gain`).
 6. *Reassembly.* Each tile scatters the light of its own core (cores partition the image; at
    the image border a core reaches to its window's edge), into its whole window; windows are
    summed into place (light adds, so a tile's blur crosses into its neighbours' cores exactly as
