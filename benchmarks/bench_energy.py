@@ -99,7 +99,8 @@ def _rows(ds: FocalStackDataset, args: argparse.Namespace) -> dict[str, Callable
     norm = ds.normalization
     nets = {name: _network(ds, args, **kw) for name, kw in (
         ("default", {}), ("margin 1", {"occlusion_margin_px": 1.0}), ("margin 4", {"occlusion_margin_px": 4.0}),
-        ("normalize", {"fill": "normalize"}), ("far light", {"fill": "far_light"}))}
+        ("normalize", {"fill": "normalize"}), ("far light", {"fill": "far_light"}), ("hermite", {"band_blend": "hermite"}),
+        ("far light, hermite", {"fill": "far_light", "band_blend": "hermite"}))}
     exact = oracle_apertures(ds)
 
     def net(name: str, *patches: tuple[object, str, object]) -> Callable:
@@ -123,6 +124,8 @@ def _rows(ds: FocalStackDataset, args: argparse.Namespace) -> dict[str, Callable
         "network, fill normalize": net("normalize"),
         "network, fill before": net("default", *old_fill),
         "network, fill far_light": net("far light"),
+        "network, hermite blend": net("hermite"),
+        "network, far_light, hermite": net("far light, hermite"),
         "oracle": oracle(),
         "oracle, over": oracle(occlusion="over"),
         "oracle, fill normalize": oracle(fill="normalize"),

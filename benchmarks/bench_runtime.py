@@ -95,10 +95,10 @@ EXPORTS = {"default": (None, False), "direct": ("direct", False), "rows": ("rows
 
 def make_model(out: Path, reuse: bool, names: tuple[str, ...] = tuple(EXPORTS), checkpoint: Path | None = None,
                size: tuple[int, int] | None = None, max_coc_px: float | None = None, tag: str = "",
-               tile_px: int | None = None) -> dict[str, Path]:
-    """The prior-initialised 1080p checkpoint (or ``checkpoint``, exported for plates of ``size``
-    ``(H, W)`` up to ``max_coc_px`` with ``tile_px`` px tiles) and its exports ``names`` (keys of
-    ``EXPORTS``), files ``<tag><name>.onnx``."""
+               tile_px: int | None = None, options: dict | None = None) -> dict[str, Path]:
+    """The prior-initialised 1080p checkpoint (with the ``ModelConfig`` ``options`` changed; or
+    ``checkpoint``, exported for plates of ``size`` ``(H, W)`` up to ``max_coc_px`` with
+    ``tile_px`` px tiles) and its exports ``names`` (keys of ``EXPORTS``), files ``<tag><name>.onnx``."""
     import torch
 
     from neuralbokeh.checkpoint import save_checkpoint
@@ -111,9 +111,9 @@ def make_model(out: Path, reuse: bool, names: tuple[str, ...] = tuple(EXPORTS), 
 
     out.mkdir(parents=True, exist_ok=True)
     aperture = ApertureModel(parse_aperture("polygon:7"))
-    cfg = ModelConfig(blocks=20, tile=TILE, overlap=OVERLAP, architecture="lens", pupil_init="aperture")
+    cfg = ModelConfig(blocks=20, tile=TILE, overlap=OVERLAP, architecture="lens", pupil_init="aperture", **(options or {}))
     contract = Contract(H, W, Normalization(0.18), C_MAX, C_MAX, ThinLens(50.0, 1.8, 36.0), aperture.to_dict())
-    ckpt = checkpoint or out / "prior_1080p.pt"
+    ckpt = checkpoint or out / f"{tag}prior_1080p.pt"
     if checkpoint is None and not (reuse and ckpt.exists()):
         torch.manual_seed(0)
         save_checkpoint(ckpt, {"model_config": cfg.to_dict(), "contract": contract.to_dict(),

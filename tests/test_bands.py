@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from neuralbokeh.checkpoint import load_model
-from neuralbokeh.core.bands import BandPlan, active_bands, band_diameters, lattice_step
+from neuralbokeh.core.bands import BandPlan, active_bands, band_diameters, hermite_weights, lattice_step
 from neuralbokeh.export.exporter import plate_model
 from neuralbokeh.networks.lens import band_gates
 from neuralbokeh.runtime import OnnxBokeh
@@ -37,6 +37,33 @@ def test_numpy_and_torch_read_the_same_band_position():
     np.testing.assert_allclose(got_np[: len(d)], np.arange(len(d)), atol=1e-12)  # band n at its centre
     assert got_np[-2] == got_np[-1] == 6.0  # beyond d_N: N
     assert (got_np[-5:-2] == 0.0).all()  # 0, 0.5 and 1 px: a point
+
+
+def test_hermite_weights_keep_the_flux_and_live_where_the_hat_does():
+    """The Hermite blend's kernel weights of all bands sum to 1 at every position (the slopes
+    sum to 0, so the flux is kept), each band's weights are non-zero exactly where its hat is,
+    a band centre takes its own kernel with no slope, between band 0 (a point, no slope) and
+    band 1 both keep the hat; numpy and torch read the same."""
+    blocks = 5
+    pos = np.linspace(0.0, blocks, 1001)
+    values = np.stack([hermite_weights(pos, n)[0] for n in range(1, blocks + 1)])
+    slopes = np.stack([hermite_weights(pos, n)[1] for n in range(1, blocks + 1)])
+    band0 = np.clip(1.0 - pos, 0.0, None)
+    np.testing.assert_allclose(band0 + values.sum(0), 1.0, atol=1e-12)
+    for n in range(1, blocks + 1):
+        hat = np.clip(1.0 - np.abs(pos - n), 0.0, None)
+        assert np.array_equal(values[n - 1] > 0, hat > 0), n
+        assert not np.any((slopes[n - 1] != 0) & (hat == 0)), n
+        at = np.isclose(pos, n)
+        np.testing.assert_allclose(values[n - 1][at], 1.0) and np.testing.assert_allclose(slopes[n - 1][at], 0.0)
+    first = pos < 1.0
+    np.testing.assert_allclose(values[0][first], pos[first]) and np.testing.assert_allclose(slopes[0][first], 0.0)
+    t = 0.3  # between centres 2 and 3: h10(t) = t (1 - t)^2 and h11(t) = t^2 (t - 1)
+    at = np.asarray([2.0 + t])
+    np.testing.assert_allclose([hermite_weights(at, 2)[1][0], hermite_weights(at, 3)[1][0]], [t * (1 - t) ** 2, t**2 * (t - 1)])
+    for n in (1, 3):
+        for got, want in zip(hermite_weights(torch.from_numpy(pos), n), hermite_weights(pos, n)):
+            np.testing.assert_allclose(got.numpy(), want, atol=1e-12)
 
 
 def test_the_file_carries_the_plate_plan_and_the_runtime_plans_with_it(busy_checkpoint, busy_onnx, tmp_path):

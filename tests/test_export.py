@@ -220,17 +220,20 @@ def test_window_max_is_the_sliding_maximum(r, h, w):
     np.testing.assert_array_equal(got_both, want_both)
 
 
-@pytest.mark.parametrize("k, size, channels", [(3, 5, 6), (7, 12, 6), (15, 9, 2), (21, 16, 3)])
-def test_row_convolution_is_the_depthwise_convolution(k, size, channels):
-    """``conv_rows`` (row GEMMs + Col2Im) against torch's depthwise conv2d, 'same' size and
-    zero padding, kernels wider than the image included: equal to float32 rounding."""
+@pytest.mark.parametrize("k, size, channels, per_group", [(3, 5, 6, 1), (7, 12, 6, 1), (15, 9, 2, 1), (21, 16, 3, 1), (5, 11, 6, 2),
+                                                         (9, 7, 3, 2)])
+def test_row_convolution_is_the_grouped_convolution(k, size, channels, per_group):
+    """``conv_rows`` (row GEMMs + Col2Im) against torch's grouped conv2d (one or two inputs per
+    group: the Hermite blend's kernel and slope features), 'same' size and zero padding, kernels
+    wider than the image included: equal to float32 rounding."""
     gen = torch.Generator().manual_seed(k)
-    x = torch.rand(2, channels, size, size, generator=gen)
-    w = torch.rand(channels, 1, k, k, generator=gen) - 0.3  # asymmetric, signed: a flipped row would show
+    x = torch.rand(2, channels * per_group, size, size, generator=gen)
+    w = torch.rand(channels, per_group, k, k, generator=gen) - 0.3  # asymmetric, signed: a flipped row would show
     g = Nodes(GraphBuilder(), "t")
     out = conv_rows(g, "x", w.numpy(), size, fp16=False)
     g.nodes.append(helper.make_node("Identity", [out], ["y"]))
-    graph = helper.make_graph(g.nodes, "rows", [helper.make_tensor_value_info("x", TensorProto.FLOAT, [2, channels, size, size])],
+    x_info = helper.make_tensor_value_info("x", TensorProto.FLOAT, [2, channels * per_group, size, size])
+    graph = helper.make_graph(g.nodes, "rows", [x_info],
                               [helper.make_tensor_value_info("y", TensorProto.FLOAT, None)], g.b.initializers)
     sess = make_session(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)]).SerializeToString(), threads=1)
     got = sess.run(None, {"x": x.numpy()})[0]
@@ -273,6 +276,26 @@ def test_the_far_light_fill_exports_with_its_learned_gain(busy_checkpoint, tmp_p
         with torch.no_grad():
             assert np.abs(outs[gain] - model(x).numpy()).max() < 1e-4
     assert np.abs(outs[3.0] - outs[0.0]).max() > 1e-3  # the far light is used where coverage is short
+
+
+def test_the_hermite_blend_exports_direct_and_on_coarser_grids(busy_checkpoint, busy_onnx, tmp_path):
+    """``band_blend = "hermite"``: each band's (kernel, slope) features go through one grouped
+    convolution, directly and on the coarser grids of the default export; both match their
+    PyTorch reference, and the blend changes the output."""
+    data = load_checkpoint(busy_checkpoint)
+    data["model_config"] = {**data["model_config"], "band_blend": "hermite"}
+    ckpt = tmp_path / "hermite.pt"
+    save_checkpoint(ckpt, {k: v for k, v in data.items() if k not in ("format", "format_version", "package_version")})
+    model, _ = load_model(ckpt)
+    x = calibration_inputs(*model.contract.size, count=2, seed=7)
+    for kernels in ("direct", None):
+        report = export_checkpoint(ckpt, tmp_path / f"h_{kernels}.onnx", kernels=kernels, threads=1)
+        assert max(report["parity"].values()) <= 1e-4, (kernels, report["parity"])
+    direct = _run_onnx(tmp_path / "h_direct.onnx", x[:, :3].numpy(), x[:, 3:].numpy())
+    hat = _run_onnx(busy_onnx, x[:, :3].numpy(), x[:, 3:].numpy())  # the same checkpoint with the hat blend
+    with torch.no_grad():
+        assert np.abs(direct - model(x).numpy()).max() < 1e-4
+    assert np.abs(direct - hat).max() > 1e-3
 
 
 def test_an_export_may_choose_its_tiles_and_only_the_field_sampling_changes(busy_checkpoint, tmp_path):

@@ -78,6 +78,27 @@ class BandPlan(NamedTuple):
         return cls(float(d["step_px"]), int(d["blocks"]), int(d["fill_radius_px"]))
 
 
+def hermite_weights(pos: Any, n: int) -> tuple[Any, Any]:
+    """Band ``n``'s (kernel, slope) weights at band positions ``pos`` (a numpy array or a torch
+    tensor, the same ops) for the cubic Hermite blend (``model.band_blend = "hermite"``).
+
+    Between centres ``n`` and ``n + 1`` a pixel at ``t = pos - n`` takes ``h00(t) K_n +
+    h10(t) K'_n + h01(t) K_{n+1} + h11(t) K'_{n+1}``, ``K'`` the kernel's derivative in the
+    diameter times the lattice step. So band ``n`` weighs its kernel by ``(1 - |u|)^2 (1 + 2|u|)``
+    and its slope by ``u (1 - |u|)^2``, ``u = pos - n``: non-zero exactly where the hat is, the
+    kernel weights of two neighbours summing to 1 (flux kept: a slope sums to 0). Band 0 is a
+    point, with no slope, so between it and band 1 both keep the hat.
+    """
+    u = pos - float(n)
+    au = abs(u)
+    inside = (1.0 - au).clip(min=0.0)
+    value, slope = inside * inside * (1.0 + 2.0 * au), u * inside * inside
+    if n == 1:  # towards band 0 (u < 0): the hat, no slope
+        left = (u < 0.0) * 1.0
+        value, slope = left * inside + (1.0 - left) * value, (1.0 - left) * slope
+    return value, slope
+
+
 def active_bands(coc_px: np.ndarray, plan: BandPlan, layout: TileLayout) -> np.ndarray:
     """``(tiles, N, 2)`` bool: whether any pixel that tile ``k`` scatters (its core, out to the
     window's edge on image-border sides) has a non-zero gate in band ``n = 1..N`` on side ``s``

@@ -209,17 +209,17 @@ def _linear_rgb(g: Nodes, window: str, norm: Normalization) -> tuple[str, str]:
 
 
 def conv_rows(g: Nodes, feats: str, weights: np.ndarray, size: int, fp16: bool) -> str:
-    """The depthwise correlation of ``feats`` ``(B, C, size, size)`` by ``weights`` ``(C, 1, k, k)``
+    """The grouped correlation of ``feats`` ``(B, C G, size, size)`` by ``weights`` ``(C, G, k, k)``
     ('same' size, zero padding), as ``Conv(group=C, pads=k // 2)`` gives it, computed by rows:
     one grouped ``Conv`` correlates each image row with each of the ``k`` kernel rows (``k``
     outputs per channel: a GEMM, where a depthwise ``k x k`` ``Conv`` is a matrix-vector
     product over a ``k^2``-row im2col buffer), then ``Col2Im`` with ``(k, 1)`` blocks adds
     kernel row ``a``'s response ``a - k // 2`` rows up. The same sums in another order: equal to
     float rounding (``tests/test_export.py``), 1.4-2.8x faster on CPU for k = 5-23."""
-    c, _, k, _ = weights.shape
+    c, per_group, k, _ = weights.shape
     p = k // 2
     # output channel c k + j holds kernel row k - 1 - j: Col2Im puts block element j at row r + j - p
-    rows = np.ascontiguousarray(weights[:, 0, ::-1, None, :].reshape(c * k, 1, 1, k))
+    rows = np.ascontiguousarray(weights[:, :, ::-1, :].transpose(0, 2, 1, 3).reshape(c * k, per_group, 1, k))
     x = g.op("Cast", feats, to=TensorProto.FLOAT16) if fp16 else feats
     y = g.op("Conv", x, g.c("w_rows", rows, np.float16 if fp16 else np.float32), group=c, pads=[0, p, 0, p])
     if fp16:
@@ -228,27 +228,56 @@ def conv_rows(g: Nodes, feats: str, weights: np.ndarray, size: int, fp16: bool) 
     return g.op("Col2Im", cols, g.c("rows_hw", [size, size], np.int64), g.c("rows_block", [k, 1], np.int64), pads=[p, 0, p, 0])
 
 
+def _hermite_weights(g: Nodes, pos: str, n: int) -> tuple[str, str]:
+    """:func:`~neuralbokeh.core.bands.hermite_weights`, op for op: band ``n``'s (kernel, slope) weights."""
+    one = g.c("one", 1.0)
+    u = g.op("Sub", pos, g.c(f"n{n}", float(n)))
+    au = g.op("Abs", u)
+    inside = g.op("Relu", g.op("Sub", one, au))
+    sq = g.op("Mul", inside, inside)
+    value = g.op("Mul", sq, g.op("Add", one, g.op("Mul", au, g.c("two", 2.0))))
+    slope = g.op("Mul", u, sq)
+    if n == 1:  # towards band 0 (u < 0): the hat, no slope
+        left = g.op("Less", u, g.c("zero", 0.0))
+        value = g.op("Where", left, inside, value)
+        slope = g.op("Where", left, g.c("zero", 0.0), slope)
+    return value, slope
+
+
 def _band(b: GraphBuilder, k: int, n: int, side: int, pos: str, side_mask: str, src_mask: str, rgb: str, c: str,
           kernel: np.ndarray, flow: tuple[str, np.ndarray] | None, scale: int, win: int, band_coc: float, margin: float,
-          fp16: bool, rows: bool) -> onnx.GraphProto:
+          fp16: bool, rows: bool, slope: np.ndarray | None = None) -> onnx.GraphProto:
     """Then-branch: band ``n``'s contribution ``(1, B, 3, 6, win, win)``, (near, same, far) x (RGB, coverage),
     its convolution on a grid ``scale`` times coarser when ``scale > 1`` (``kernel`` is then
     the binned one, :func:`~neuralbokeh.networks.lens.reduce_kernel`), by rows
     (:func:`conv_rows`) or one depthwise ``Conv``. ``flow``: (the window's colour times this
     side's centroid drift ``(B, 3, win, win)``, the gain's slope ``(3,)``): the colour scattered
-    is ``rgb - slope x that`` (:meth:`~neuralbokeh.networks.lens.LensBokeh.colour_gains`)."""
+    is ``rgb - slope x that`` (:meth:`~neuralbokeh.networks.lens.LensBokeh.colour_gains`).
+    ``slope``: the kernels' slope in the diameter (Hermite blend, ``(2, 3, k, k)`` as
+    ``kernel``): each group of the convolution then takes the (kernel, slope) features of one channel."""
     g = Nodes(GraphBuilder(b.count), f"t{k}.n{n}s{side}")
     one = g.c("one", 1.0)
-    hat = g.op("Relu", g.op("Sub", one, g.op("Abs", g.op("Sub", pos, g.c(f"n{n}", float(n))))))
-    gate = g.op("Mul", g.op("Mul", hat, src_mask), side_mask)
+    if slope is None:
+        weights = [g.op("Relu", g.op("Sub", one, g.op("Abs", g.op("Sub", pos, g.c(f"n{n}", float(n))))))]  # the hat
+    else:
+        weights = list(_hermite_weights(g, pos, n))
     if flow is not None:
         rgb = g.op("Sub", rgb, g.op("Mul", flow[0], g.c("slope", np.asarray(flow[1]).reshape(1, 3, 1, 1))))
-    feats = g.op("Concat", g.op("Mul", rgb, gate), gate, gate, gate, axis=1)  # (B, 6, win, win)
+    parts = []
+    for i, weight in enumerate(weights):
+        gate = g.op("Mul", g.op("Mul", weight, src_mask), side_mask)
+        parts.append(g.op("Concat", g.op("Mul", rgb, gate), gate, gate, gate, axis=1))  # (B, 6, win, win)
+    if len(parts) == 1:
+        feats = parts[0]
+    else:  # interleaved (kernel, slope) per channel: (B, 6, 2, win, win) -> (B, 12, win, win)
+        pair = g.op("Concat", *(g.op("Unsqueeze", f, g.c("ax2", [2], np.int64)) for f in parts), axis=2)
+        feats = g.op("Reshape", pair, g.c("pair_shape", [0, 12, win, win], np.int64))
     if scale > 1:
         extra = -(-win // scale) * scale - win
         feats = g.op("AveragePool", feats, kernel_shape=[scale, scale], strides=[scale, scale], pads=[0, 0, extra, extra],
                      count_include_pad=1)
-    w = np.concatenate([kernel, kernel])[:, None, ::-1, ::-1]  # (6, 1, k, k), correlation weights
+    psfs = [kernel] if slope is None else [kernel, slope]
+    w = np.stack([np.concatenate([f, f]) for f in psfs], axis=1)[:, :, ::-1, ::-1]  # (6, 1 or 2, k, k), correlation weights
     p = kernel.shape[-1] // 2
     if rows:
         out = conv_rows(g, feats, w, -(-win // scale), fp16)
@@ -276,12 +305,13 @@ def _band(b: GraphBuilder, k: int, n: int, side: int, pos: str, side_mask: str, 
 
 def _tile(b: GraphBuilder, k: int, window: str, kernels: Mapping[int, np.ndarray], flow: tuple[str, Mapping[int, np.ndarray]] | None,
           scales: Mapping[int, int], src: np.ndarray, cfg: ModelConfig, contract: Contract, plan: BandPlan, fp16: bool,
-          rows: bool) -> onnx.GraphProto:
+          rows: bool, slopes: Mapping[int, np.ndarray] | None = None) -> onnx.GraphProto:
     """Then-branch: tile ``k``'s accumulators ``(B, 3, 6, win, win)``, flattened to ``(1, B 18 win^2)``,
     from the outer ``window``; band ``n``, side ``s`` runs where ``band_active[k, n - 1, s]``. A
     band that does not run gives an empty ``(0, B, 3, 6, win, win)``, so the sum over the bands
     costs only the bands that ran. ``flow``: (the outer window of the centroid drift ``(1, 6,
-    win, win)``, ``{n: (2, 3)}`` the gains' slopes) or None (no drift)."""
+    win, win)``, ``{n: (2, 3)}`` the gains' slopes) or None (no drift). ``slopes``: ``{n: (2, 3,
+    k, k)}`` the kernels' slopes (Hermite blend) or None (hat)."""
     g = Nodes(GraphBuilder(b.count), f"t{k}")
     blocks, diameters = plan.blocks, plan.diameters
     win = src.shape[-1]
@@ -312,7 +342,8 @@ def _tile(b: GraphBuilder, k: int, window: str, kernels: Mapping[int, np.ndarray
                 used = g.op("Gather", g.op("Gather", flags, g.c(f"n{n}_row", n - 1, np.int64)), g.c(f"side{side}", side, np.int64))
                 band_flow = None if moved is None else (moved[side], flow[1][n][side])
                 then = _band(g.b, k, n, side, pos, mask, src_mask, rgb, c, kernels[n][side], band_flow, scales.get(n, 1), win,
-                             sign * float(diameters[n]), float(cfg.occlusion_margin_px), fp16, rows)
+                             sign * float(diameters[n]), float(cfg.occlusion_margin_px), fp16, rows,
+                             None if slopes is None else slopes[n][side])
                 skip = Nodes(GraphBuilder(g.b.count), f"t{k}.n{n}s{side}.skip")
                 empty = skip.op("Slice", base, skip.c("s0", [0], np.int64), skip.c("s0", [0], np.int64), skip.c("ax0", [0], np.int64))
                 else_graph = _branch(skip, empty, f"t{k}_band{n}_{side}_skip")
@@ -376,7 +407,7 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: Mod
                      fp16: bool = False, opset: int = 18, metadata: Mapping[str, str] | None = None,
                      scales: Mapping[int, int] | None = None, rows: bool = False,
                      flow: tuple[tuple[np.ndarray, np.ndarray, np.ndarray], Mapping[int, np.ndarray]] | None = None,
-                     fill_gain: float | None = None) -> onnx.ModelProto:
+                     fill_gain: float | None = None, slopes: Mapping[int, np.ndarray] | None = None) -> onnx.ModelProto:
     """The full-image ONNX model of a ``LensBokeh``.
 
     Args:
@@ -396,9 +427,14 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: Mod
             scattered colour at pixel (i, j) is multiplied by ``1 - slope x drift``, the drift
             ``rows[i] . nodes . cols[j]``. None: no drift (gains 1).
         fill_gain: ``LensBokeh.far_light_gain()`` (``fill = "far_light"`` only), > 0.
+        slopes: ``band_blend = "hermite"`` only: ``{n: (tiles, 2, 3, k, k)}`` the kernels' slopes
+            in the diameter times the lattice step (``LensBokeh.kernel_slopes``), binned as
+            ``kernels``.
     """
     if opset < 18:
         raise ValueError(f"the lens graph needs opset >= 18 (Col2Im), got {opset}")
+    if (slopes is not None) != (cfg.band_blend == "hermite"):
+        raise ValueError(f"model.band_blend is {cfg.band_blend!r}: kernel slopes are needed for 'hermite' and only there")
     scales = dict(scales or {})
     layout = cfg.layout(*contract.size)
     source_masks = layout.source_masks()
@@ -424,7 +460,8 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: Mod
         cond = top.op("Gather", "tile_active", b.const(f"t{k}.index", k, np.int64))
         tile_kernels = {n: kernels[n][k] for n in kernels}
         tile_flow = None if drift is None else (top.op("Slice", drift, starts, ends, "axes_hw"), flow[1])
-        then = _tile(b, k, window, tile_kernels, tile_flow, scales, source_masks[k], cfg, contract, plan, fp16, rows)
+        tile_slopes = None if slopes is None else {n: slopes[n][k] for n in slopes}
+        then = _tile(b, k, window, tile_kernels, tile_flow, scales, source_masks[k], cfg, contract, plan, fp16, rows, tile_slopes)
         b.count += 10_000  # branch-local names stay unique across branches
         other = _passthrough(b, k, window, source_masks[k], contract.normalization)
         b.count += 10_000

@@ -17,6 +17,7 @@ from ..core.tiling import TileLayout
 ARCHITECTURES = ("lens", "paper")
 PUPIL_INITS = ("disk", "gaussian", "aperture")
 FILLS = ("background", "normalize", "far_light")
+BAND_BLENDS = ("hat", "hermite")
 KERNEL_SIZES = ("growing", "fixed3")
 TILINGS = ("overlap", "none", "no_overlap")
 HEADS = ("identity", "paper")
@@ -60,8 +61,13 @@ class ModelConfig:
             as the reference renderer's default), ``"normalize"`` (divide by the coverage) or
             ``"far_light"`` (the mean colour of the light from behind that reaches the pixel, for
             up to a learned gain times that light's own coverage, the rest the background).
+        band_blend: how a pixel between two band centres gets its kernel (lens): ``"hat"`` (the
+            linear blend of the two band kernels) or ``"hermite"`` (the cubic Hermite
+            interpolation of the two kernels and their slopes in the CoC: each band scatters a
+            second feature by its kernel's derivative in the diameter; about a quarter of the
+            hat's kernel error, for twice the convolutions).
         (``features``, ``head`` and the FFT thresholds: paper only; ``pupil_*``,
-        ``field_grid``, ``vignetting``, ``occlusion_margin_px``, ``fill``: lens only; the rest: both.)
+        ``field_grid``, ``vignetting``, ``occlusion_margin_px``, ``fill``, ``band_blend``: lens only; the rest: both.)
     """
 
     architecture: str = "lens"
@@ -80,6 +86,7 @@ class ModelConfig:
     vignetting: bool = True
     occlusion_margin_px: float = 2.0
     fill: str = "background"
+    band_blend: str = "hat"
 
     def __post_init__(self) -> None:
         for name in ("features", "tile", "fft_min_kernel", "fft_min_kernel_train"):
@@ -100,7 +107,8 @@ class ModelConfig:
         if not (isinstance(m, (int, float)) and math.isfinite(m) and m > 0):
             raise ValueError(f"model.occlusion_margin_px must be a finite number > 0 px, got {m!r}")
         for name, allowed in (("tiling", TILINGS), ("kernel_sizes", KERNEL_SIZES), ("head", HEADS),
-                              ("architecture", ARCHITECTURES), ("pupil_init", PUPIL_INITS), ("fill", FILLS)):
+                              ("architecture", ARCHITECTURES), ("pupil_init", PUPIL_INITS), ("fill", FILLS),
+                              ("band_blend", BAND_BLENDS)):
             if getattr(self, name) not in allowed:
                 raise ValueError(f"model.{name} must be one of {allowed}, got {getattr(self, name)!r}")
 

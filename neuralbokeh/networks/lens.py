@@ -29,6 +29,10 @@ The skeleton of the paper, given what a lens blur is made of:
    runs the bands up to the first whose centre reaches its own largest |CoC| (:meth:`LensBokeh.plan`, :mod:`neuralbokeh.core.bands`):
    a frame with a third of the range runs a third of the bands, one beyond the trained range
    runs more, with the pupil scaled to their diameters. Features of band ``n`` = (colour x gate, gate), for each side.
+   With ``band_blend = "hermite"`` the gates are cubic and each band also scatters (colour x
+   slope weight, slope weight) by its kernels' derivative in the diameter
+   (:func:`neuralbokeh.core.bands.hermite_weights`): a pixel between two centres then gets
+   nearly the kernel at its own CoC, not the linear blend of two.
 4. *Residual blocks R_1..R_N.* Block ``n`` scatters its band with per-channel kernels of size
    ``2n + 1`` (the paper's growing kernels, up to the largest CoC): the tile's pupil rasterised
    (anti-aliased, normalised to sum 1) at diameter ``d_n`` x the channel scale, point-reflected
@@ -74,7 +78,7 @@ import torch.nn.functional as F
 
 from ..core import checks
 from ..core.apertures import Aperture, Disk, Gaussian, aperture_from_dict
-from ..core.bands import BandPlan, lattice_step
+from ..core.bands import BandPlan, hermite_weights, lattice_step
 from ..core.contract import Contract
 from ..core.tiling import TileLayout
 from ..ops.fftconv import next_fast_len
@@ -93,6 +97,10 @@ DRIFT_NODE_SPACING = 0.25
 PUPIL_FLOOR = 1e-3  # initial transmission outside the prior's shape (log space cannot hold 0)
 SUPERSAMPLE = 4  # the fewest pupil samples per kernel pixel side (anti-aliasing)
 _EPS = 1e-8
+# the half-width (px of CoC) of the central difference that gives a kernel's slope in the diameter:
+# well below a pixel (the rasterisation is piecewise smooth at that scale), well above float32's
+# rounding of kernels that sum to 1
+SLOPE_DELTA_PX = 0.02
 
 
 def _gate(pos: torch.Tensor, n: int) -> torch.Tensor:
@@ -216,20 +224,26 @@ def _prior_shape(cfg: Any, aperture: dict | None) -> Aperture:
     return aperture_from_dict(aperture["shape"])
 
 
-def _scatter(feats: torch.Tensor, kern: torch.Tensor, which: torch.Tensor, s: int) -> torch.Tensor:
+def _scatter(feats: torch.Tensor, kern: torch.Tensor, which: torch.Tensor, s: int, slope: torch.Tensor | None = None) -> torch.Tensor:
     """(colour x gate, gate) ``(M, 4, win, win)`` scattered by the kernels ``kern[which]``
     (``(tiles, 3, k, k)``): ``(M, 6, win, win)`` (colour, per-channel coverage), 'same' size,
-    on a grid ``s`` times coarser when ``s > 1``."""
+    on a grid ``s`` times coarser when ``s > 1``. With the kernels' ``slope`` (Hermite blend),
+    ``feats`` ``(M, 8, win, win)`` also holds (colour x slope weight, slope weight), scattered
+    by the slope and added."""
     win = feats.shape[-1]
     if s > 1:
         size = -(-win // s) * s
         feats = F.avg_pool2d(F.pad(feats, (0, size - win, 0, size - win)), s)
         kern = reduce_kernel(kern, s)
+        slope = None if slope is None else reduce_kernel(slope, s)
     k, n = kern.shape[-1], feats.shape[-1]
     fs = next_fast_len(n + k - 1)
     fx = torch.fft.rfft2(feats, s=(fs, fs))
     fk = torch.fft.rfft2(kern, s=(fs, fs))[which]  # (M, 3, ...) per tile
     prod = torch.cat([fx[:, :3] * fk, fx[:, 3:4] * fk], dim=1)  # (M, 6, ...)
+    if slope is not None:
+        fd = torch.fft.rfft2(slope, s=(fs, fs))[which]
+        prod = prod + torch.cat([fx[:, 4:7] * fd, fx[:, 7:8] * fd], dim=1)
     out = torch.fft.irfft2(prod, s=(fs, fs))[..., k // 2 : k // 2 + n, k // 2 : k // 2 + n]  # 'same'
     if s > 1:
         out = F.interpolate(out, scale_factor=s, mode="bilinear", align_corners=False)[..., :win, :win]
@@ -513,7 +527,7 @@ class LensBokeh(nn.Module):
         return pupils + vignette_log_mask(pos, self.vignette, p)[:, :, None, None]
 
 
-    def kernels(self, n: int, pupils: torch.Tensor, diameter: float) -> torch.Tensor:
+    def kernels(self, n: int, pupils: torch.Tensor, diameter: float, ss: int | None = None) -> torch.Tensor:
         """Band ``n``'s kernels ``(M, 2, 3, k, k)`` for the pupils ``(M, 2, 3, P, P)`` (log) at CoC
         ``diameter`` (px): side 0 behind, 1 in front (already point-reflected), each summing to
         1, as a correlation-free PSF (light lands at ``p + offset``).
@@ -521,15 +535,26 @@ class LensBokeh(nn.Module):
         Kernel pixel ``(a, b)`` is the mean of the bilinearly interpolated transmission over
         ``ss x ss`` points of its footprint (:func:`supersampling`). Both the sampling and the
         interpolation are separable, so the kernel is ``W T W^T`` with ``W`` ``(k, P)`` the
-        row weights (:func:`raster_weights`): two small matrix products per pupil."""
+        row weights (:func:`raster_weights`): two small matrix products per pupil. ``ss``: the
+        supersampling (default: :func:`supersampling`'s for ``diameter``)."""
         k = self.kernel_size(n)
         scale = torch.exp(self.log_channel_scale)  # (3,)
-        ss = supersampling(float(diameter) * float(scale.detach().min()), self.config.pupil_size)
+        ss = supersampling(float(diameter) * float(scale.detach().min()), self.config.pupil_size) if ss is None else ss
         w = raster_weights(k, ss, 0.5 * float(diameter) * scale, self.config.pupil_size, pupils.dtype, pupils.device)
         kern = w[None, None] @ torch.exp(pupils) @ w.transpose(-1, -2)[None, None]  # (M, 2, 3, k, k)
         kern = kern / kern.sum(dim=(-2, -1), keepdim=True).clamp_min(_EPS)
         # in front of the focus plane the aperture's image is inverted
         return torch.stack([kern[:, 0], kern[:, 1].flip(-2, -1)], dim=1)
+
+    def kernel_slopes(self, n: int, pupils: torch.Tensor, diameter: float, step_px: float) -> torch.Tensor:
+        """Band ``n``'s kernels' derivative in the diameter at ``diameter`` (px) times the lattice
+        step ``step_px``, shaped as :meth:`kernels`: each sums to 0 (every kernel sums to 1).
+        A central difference over +-``SLOPE_DELTA_PX`` with one supersampling, so that it
+        differentiates the rasterisation, not a change of its sampling."""
+        ss = supersampling(float(diameter) * float(torch.exp(self.log_channel_scale).detach().min()), self.config.pupil_size)
+        up = self.kernels(n, pupils, float(diameter) + SLOPE_DELTA_PX, ss)
+        down = self.kernels(n, pupils, float(diameter) - SLOPE_DELTA_PX, ss)
+        return (up - down) * (float(step_px) / (2.0 * SLOPE_DELTA_PX))
 
     # -- forward ---------------------------------------------------------------------------
     def frame_coc(self, x: torch.Tensor, plan_coc_px: float | None = None) -> float:
@@ -589,11 +614,16 @@ class LensBokeh(nn.Module):
         coc_flat = coc.reshape(b * n_t, win, win)
         rgb_flat = rgb.reshape(b * n_t, 3, win, win)
         scales = scales or {}
+        hermite = cfg.band_blend == "hermite"
         for n in range(1, blocks + 1):
-            g = _gate(pos, n) * src[:, :, 0]  # (B, T, win, win)
-            kern = None
+            if hermite:
+                g, g_slope = (v * src[:, :, 0] for v in hermite_weights(pos, n))  # (B, T, win, win) each
+            else:
+                g, g_slope = _gate(pos, n) * src[:, :, 0], None
+            kern = slope = None
             for side, sign in ((0, 1.0), (1, -1.0)):
-                gs = g * ((coc > 0) if side == 0 else (coc < 0)).to(x.dtype)
+                side_mask = ((coc > 0) if side == 0 else (coc < 0)).to(x.dtype)
+                gs = g * side_mask
                 used = (gs.flatten(2).amax(-1) > 0) & active[None, :]  # (B, T)
                 idx = torch.nonzero(used.flatten()).flatten()
                 if idx.numel() == 0:
@@ -601,13 +631,17 @@ class LensBokeh(nn.Module):
                 # each distinct pupil's kernels once per band, both sides (shared: one set for every image)
                 if kern is None:
                     kern = self.kernels(n, pupils, float(diameters[n]))
+                    slope = self.kernel_slopes(n, pupils, float(diameters[n]), plan.step_px) if hermite else None
                 which = idx % n_t if shared else idx
                 w = gs.reshape(b * n_t, 1, win, win)[idx]
-                colour = rgb_flat[idx] * w
+                colour = rgb_flat[idx]
                 if drift is not None:
                     colour = colour * self.colour_gains(drift[which, side], float(diameters[n]), side)  # (M, 3, win, win)
-                feats = torch.cat([colour, w], dim=1)  # (M, 4, win, win)
-                out = _scatter(feats, kern[:, side], which, scales.get(n, 1))
+                feats = torch.cat([colour * w, w], dim=1)  # (M, 4, win, win)
+                if hermite:  # the slope's weights on the same pixels, with the same side mask
+                    ws = (g_slope * side_mask).reshape(b * n_t, 1, win, win)[idx]
+                    feats = torch.cat([feats, colour * ws, ws], dim=1)  # (M, 8, win, win)
+                out = _scatter(feats, kern[:, side], which, scales.get(n, 1), None if slope is None else slope[:, side])
                 bw = bucket_weights(sign * float(diameters[n]), coc_flat[idx], cfg.occlusion_margin_px)
                 contrib = bw.permute(1, 0, 2, 3).unsqueeze(2) * out.unsqueeze(1)  # (M, 3, 6, win, win)
                 # one band at a time: memory stays O(image), not O(image x bands); in place, so no

@@ -1,0 +1,75 @@
+"""What a model option costs a 1080p render: the untrained prior of ``bench_runtime.py`` (N = 20,
+240 + 24 px tiles, a 7-blade aperture) with one ``ModelConfig`` option changed, against the prior
+as it is, each through its default export (``multires:10``), in one process, renders alternating.
+
+    python benchmarks/bench_options.py [--options band_blend=hermite fill=far_light] [--repeats 7] [--reuse]
+
+About 12 minutes on 2 cores, most of it the exports' parity checks. The frames are
+``bench_runtime.py``'s procedural 1920x1080 frame (largest |CoC| 40 px), a third of its CoC and
+its left half in focus. Printed per frame: the median ms of each file (the renders alternate, so
+a drift of the machine's speed hits all alike) and each option's ratio to the prior as it is.
+The run time does not depend on the weights, so an untrained prior times what a trained model
+with the option costs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from bench_runtime import H, W, _frames, make_model  # noqa: E402
+
+from neuralbokeh.runtime.onnx_model import OnnxBokeh  # noqa: E402
+
+
+def _option(spec: str) -> tuple[str, object]:
+    key, sep, value = spec.partition("=")
+    if not sep or not key or not value:
+        raise SystemExit(f"error: an option is KEY=VALUE (a ModelConfig field), got {spec!r}")
+    return key, float(value) if value.replace(".", "", 1).isdigit() else value
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--options", nargs="+", default=["band_blend=hermite", "fill=far_light"], metavar="KEY=VALUE",
+                   help="ModelConfig options, each timed on its own against the prior as it is")
+    p.add_argument("--repeats", type=int, default=7)
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--seed", type=int, default=3)
+    p.add_argument("--out-dir", type=Path, default=ROOT / "runs" / "bench_options")
+    p.add_argument("--reuse", action="store_true", help="keep the exports of an earlier run")
+    args = p.parse_args()
+    args.out_dir.mkdir(parents=True, exist_ok=True)
+    variants = {"prior": {}} | {spec: dict([_option(spec)]) for spec in args.options}
+    frames, _ = _frames(args, H, W, 40.0)
+    files = {}
+    for i, (name, options) in enumerate(variants.items()):
+        files[name] = make_model(args.out_dir, args.reuse, ("default",), tag=f"v{i}_", options=options)["default"]
+    models = {name: OnnxBokeh(path, threads=args.threads) for name, path in files.items()}
+    print(f"{'frame':16s} " + " ".join(f"{name + ' ms':>22s}" for name in models) + "   ratios to the prior")
+    for frame, path in frames.items():
+        z = np.load(path)
+        times: dict[str, list[float]] = {name: [] for name in models}
+        for m in models.values():
+            m.render_coc(z["aif"], z["coc"])  # warm-up
+        for _ in range(args.repeats):
+            for name, m in models.items():
+                t = time.perf_counter()
+                m.render_coc(z["aif"], z["coc"])
+                times[name].append(1000 * (time.perf_counter() - t))
+        med = {name: statistics.median(v) for name, v in times.items()}
+        ratios = "  ".join(f"{name}: {med[name] / med['prior']:.2f}x" for name in models if name != "prior")
+        print(f"{frame:16s} " + " ".join(f"{med[name]:22.0f}" for name in models) + f"   {ratios}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
