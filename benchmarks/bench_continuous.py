@@ -15,7 +15,9 @@ f/1.4 on a 36 mm sensor, disk aperture (Mitsuba's thin-lens sensor). Two cases:
 
 For each case the script renders Mitsuba's thin-lens defocus (the truth; the AIF and planar
 depth once), then feeds the AIF + CoC to identity, the CoC Gaussian, the naive gather and the
-scatter with the true aperture, and prints linear / sRGB PSNR and seconds.
+scatter with the true aperture, and prints linear / sRGB PSNR and seconds. ``--network`` adds
+the lens network, untrained, given the scene's own lens, with the hidden-background fill and the
+far-light fill (at its starting gain).
 
 Overscan (``--overscan M``, default 24 px, half the largest CoC): the truth, the AIF and the depth
 are rendered M px wider on every side (the same scene, camera and pixel pitch) and every method
@@ -74,6 +76,32 @@ def methods(aperture: ApertureModel, steps: list[float], jumps: list[float]) -> 
     return out
 
 
+def network_rows(aperture: ApertureModel, lens: ThinLens, size: tuple[int, int], max_coc_px: float) -> dict:
+    """The lens network, untrained, given the scene's own lens (``pupil_init = "aperture"``, no
+    cat-eye: Mitsuba's thin lens has none), with the hidden-background fill and with the
+    far-light fill at its starting gain (1): what each fill rule does where a blurred foreground
+    uncovers the wall, before any training moves the gain."""
+    from neuralbokeh.core.contract import Contract
+    from neuralbokeh.core.normalization import Normalization
+    from neuralbokeh.networks import ModelConfig, build_model
+
+    h, w = size
+    overlap = int(np.ceil(max_coc_px / 2.0)) + 4
+    contract = Contract(h, w, Normalization(0.18), max_coc_px, max_coc_px, lens, aperture.to_dict())
+    rows = {}
+    for fill in ("background", "far_light"):
+        cfg = ModelConfig(tile=2 * overlap, overlap=overlap, pupil_init="aperture", vignetting=False, fill=fill).resolved(max_coc_px)
+        model = build_model(cfg, contract).eval().double()
+
+        def run(aif: np.ndarray, coc: np.ndarray, model=model) -> np.ndarray:
+            x = torch.from_numpy(aif.transpose(2, 0, 1).copy())[None].double()
+            with torch.no_grad():
+                out = contract.apply(model, x, torch.from_numpy(coc)[None, None].double())
+            return out[0].clamp_min(0.0).numpy().transpose(1, 2, 0)
+        rows[f"network, fill {fill}"] = run
+    return rows
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--size", type=int, nargs=2, default=(256, 192))
@@ -84,6 +112,7 @@ def main() -> None:
     p.add_argument("--overscan", type=int, default=24, help="px rendered beyond the frame on every side and given to every method")
     p.add_argument("--truth-renders", type=int, default=1, help="independent truth renders (>= 2: noise-corrected PSNR column)")
     p.add_argument("--seed", type=int, default=3)
+    p.add_argument("--network", action="store_true", help="add the untrained lens network with each fill (the scene's own lens)")
     p.add_argument("--variant", default=None)
     p.add_argument("--save", type=Path, default=None, help="folder to write the AIF and the truths to (EXR)")
     args = p.parse_args()
@@ -103,6 +132,9 @@ def main() -> None:
     aif, depth = render_aif(mi, scene, cam, 1024), render_depth(mi, scene, cam)
     aperture = ApertureModel()
     table = methods(aperture, args.steps, args.jumps)
+    if args.network:
+        coc_max = max(float(np.abs(lens.coc_px(depth, f, w + 2 * m, signed=True)).max()) for f in (OCCLUSION_WALL_M, OCCLUSION_FG_FOCUS_M))
+        table |= network_rows(aperture, lens, (h + 2 * m, w + 2 * m), coc_max)
     print(f"mitsuba {mi.__version__} {mi.variant()}; {w}x{h} (+{m} px overscan), 85 mm f/1.4, disk; truth {args.spp} spp thin-lens")
     if args.save:
         from neuralbokeh.core.io import write_image
