@@ -17,7 +17,6 @@ difference between the two outputs (what the drift changes on these frames).
 from __future__ import annotations
 
 import argparse
-import statistics
 import sys
 import time
 from pathlib import Path
@@ -29,7 +28,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from bench_runtime import _frames  # noqa: E402
+from bench_runtime import _frames, alternating_ms  # noqa: E402
 
 from neuralbokeh.export.exporter import export_checkpoint  # noqa: E402
 from neuralbokeh.networks.lens import LensBokeh  # noqa: E402
@@ -77,14 +76,7 @@ def main() -> None:
     print(f"{'frame':16s} {'drift ms':>9s} {'no drift ms':>12s} {'ratio':>6s} {'max |diff|':>11s}")
     for frame, path in frames.items():
         z = np.load(path)
-        times: dict[str, list[float]] = {name: [] for name in models}
-        outs = {name: m.render_coc(z["aif"], z["coc"]) for name, m in models.items()}  # warm-up
-        for _ in range(args.repeats):
-            for name, m in models.items():
-                t = time.perf_counter()
-                m.render_coc(z["aif"], z["coc"])
-                times[name].append(1000 * (time.perf_counter() - t))
-        med = {name: statistics.median(v) for name, v in times.items()}
+        med, outs = alternating_ms(models, z["aif"], z["coc"], args.repeats)
         diff = float(np.abs(outs["drift"] - outs["no_drift"]).max())
         print(f"{frame:16s} {med['drift']:9.0f} {med['no_drift']:12.0f} {med['drift'] / med['no_drift']:6.2f} {diff:11.2e}", flush=True)
 

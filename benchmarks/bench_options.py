@@ -15,9 +15,7 @@ with the option costs.
 from __future__ import annotations
 
 import argparse
-import statistics
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -26,16 +24,24 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from bench_runtime import H, W, _frames, make_model  # noqa: E402
+from bench_runtime import H, W, _frames, alternating_ms, make_model  # noqa: E402
 
 from neuralbokeh.runtime.onnx_model import OnnxBokeh  # noqa: E402
 
 
 def _option(spec: str) -> tuple[str, object]:
+    """``KEY=VALUE`` -> (key, value as an int, float, true / false or else the string)."""
     key, sep, value = spec.partition("=")
     if not sep or not key or not value:
         raise SystemExit(f"error: an option is KEY=VALUE (a ModelConfig field), got {spec!r}")
-    return key, float(value) if value.replace(".", "", 1).isdigit() else value
+    if value in ("true", "false"):
+        return key, value == "true"
+    for kind in (int, float):
+        try:
+            return key, kind(value)
+        except ValueError:
+            pass
+    return key, value
 
 
 def main() -> None:
@@ -58,15 +64,7 @@ def main() -> None:
     print(f"{'frame':16s} " + " ".join(f"{name + ' ms':>22s}" for name in models) + "   ratios to the prior")
     for frame, path in frames.items():
         z = np.load(path)
-        times: dict[str, list[float]] = {name: [] for name in models}
-        for m in models.values():
-            m.render_coc(z["aif"], z["coc"])  # warm-up
-        for _ in range(args.repeats):
-            for name, m in models.items():
-                t = time.perf_counter()
-                m.render_coc(z["aif"], z["coc"])
-                times[name].append(1000 * (time.perf_counter() - t))
-        med = {name: statistics.median(v) for name, v in times.items()}
+        med, _ = alternating_ms(models, z["aif"], z["coc"], args.repeats)
         ratios = "  ".join(f"{name}: {med[name] / med['prior']:.2f}x" for name in models if name != "prior")
         print(f"{frame:16s} " + " ".join(f"{med[name]:22.0f}" for name in models) + f"   {ratios}", flush=True)
 

@@ -217,6 +217,19 @@ def worker(args: argparse.Namespace) -> None:
     print(json.dumps({"ms": 1000.0 * statistics.median(times), "rss_mb": _peak_rss_mb()}))
 
 
+def alternating_ms(models: dict, aif: np.ndarray, coc: np.ndarray, repeats: int) -> tuple[dict[str, float], dict[str, np.ndarray]]:
+    """Median ms of ``render_coc(aif, coc)`` per model, the renders alternating between the models
+    (a drift of the machine's speed hits all alike), after one warm-up each; and the warm-up outputs."""
+    outs = {name: m.render_coc(aif, coc) for name, m in models.items()}
+    times: dict[str, list[float]] = {name: [] for name in models}
+    for _ in range(repeats):
+        for name, m in models.items():
+            t = time.perf_counter()
+            m.render_coc(aif, coc)
+            times[name].append(1000 * (time.perf_counter() - t))
+    return {name: statistics.median(v) for name, v in times.items()}, outs
+
+
 def _row(spec: str, frame: Path, out: Path, threads: int, repeats: int) -> dict:
     cmd = [sys.executable, __file__, "--worker", spec, "--frame", str(frame), "--out", str(out), "--threads", str(threads),
            "--repeats", str(repeats)]

@@ -539,19 +539,23 @@ class LensBokeh(nn.Module):
         supersampling (default: :func:`supersampling`'s for ``diameter``)."""
         k = self.kernel_size(n)
         scale = torch.exp(self.log_channel_scale)  # (3,)
-        ss = supersampling(float(diameter) * float(scale.detach().min()), self.config.pupil_size) if ss is None else ss
+        ss = self._supersampling(diameter) if ss is None else ss
         w = raster_weights(k, ss, 0.5 * float(diameter) * scale, self.config.pupil_size, pupils.dtype, pupils.device)
         kern = w[None, None] @ torch.exp(pupils) @ w.transpose(-1, -2)[None, None]  # (M, 2, 3, k, k)
         kern = kern / kern.sum(dim=(-2, -1), keepdim=True).clamp_min(_EPS)
         # in front of the focus plane the aperture's image is inverted
         return torch.stack([kern[:, 0], kern[:, 1].flip(-2, -1)], dim=1)
 
+    def _supersampling(self, diameter: float) -> int:
+        """Supersamples per kernel pixel side at CoC ``diameter`` (px), for the smallest channel scale."""
+        return supersampling(float(diameter) * float(torch.exp(self.log_channel_scale).detach().min()), self.config.pupil_size)
+
     def kernel_slopes(self, n: int, pupils: torch.Tensor, diameter: float, step_px: float) -> torch.Tensor:
         """Band ``n``'s kernels' derivative in the diameter at ``diameter`` (px) times the lattice
         step ``step_px``, shaped as :meth:`kernels`: each sums to 0 (every kernel sums to 1).
         A central difference over +-``SLOPE_DELTA_PX`` with one supersampling, so that it
         differentiates the rasterisation, not a change of its sampling."""
-        ss = supersampling(float(diameter) * float(torch.exp(self.log_channel_scale).detach().min()), self.config.pupil_size)
+        ss = self._supersampling(diameter)
         up = self.kernels(n, pupils, float(diameter) + SLOPE_DELTA_PX, ss)
         down = self.kernels(n, pupils, float(diameter) - SLOPE_DELTA_PX, ss)
         return (up - down) * (float(step_px) / (2.0 * SLOPE_DELTA_PX))
