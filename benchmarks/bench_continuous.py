@@ -76,11 +76,15 @@ def methods(aperture: ApertureModel, steps: list[float], jumps: list[float]) -> 
     return out
 
 
-def network_rows(aperture: ApertureModel, lens: ThinLens, size: tuple[int, int], max_coc_px: float) -> dict:
+def network_rows(aperture: ApertureModel, lens: ThinLens, size: tuple[int, int], max_coc_px: float,
+                 variants: list[str]) -> dict:
     """The lens network, untrained, given the scene's own lens (``pupil_init = "aperture"``, no
     cat-eye: Mitsuba's thin lens has none), with the hidden-background fill and with the
     far-light fill at its starting gain (1): what each fill rule does where a blurred foreground
-    uncovers the wall, before any training moves the gain."""
+    uncovers the wall, before any training moves the gain. Each of ``variants`` (``KEY=VALUE``
+    ModelConfig fields, comma-separated) adds a row with the background fill and those fields."""
+    from bench_options import parse_option
+
     from neuralbokeh.core.contract import Contract
     from neuralbokeh.core.normalization import Normalization
     from neuralbokeh.networks import ModelConfig, build_model
@@ -89,8 +93,10 @@ def network_rows(aperture: ApertureModel, lens: ThinLens, size: tuple[int, int],
     overlap = int(np.ceil(max_coc_px / 2.0)) + 4
     contract = Contract(h, w, Normalization(0.18), max_coc_px, max_coc_px, lens, aperture.to_dict())
     rows = {}
-    for fill in ("background", "far_light"):
-        cfg = ModelConfig(tile=2 * overlap, overlap=overlap, pupil_init="aperture", vignetting=False, fill=fill).resolved(max_coc_px)
+    configs = {f"network, fill {fill}": {"fill": fill} for fill in ("background", "far_light")}
+    configs |= {f"network, {spec}": dict(parse_option(o) for o in spec.split(",")) for spec in variants}
+    for name, options in configs.items():
+        cfg = ModelConfig(tile=2 * overlap, overlap=overlap, pupil_init="aperture", vignetting=False, **options).resolved(max_coc_px)
         model = build_model(cfg, contract).eval().double()
 
         def run(aif: np.ndarray, coc: np.ndarray, model=model) -> np.ndarray:
@@ -98,7 +104,7 @@ def network_rows(aperture: ApertureModel, lens: ThinLens, size: tuple[int, int],
             with torch.no_grad():
                 out = contract.apply(model, x, torch.from_numpy(coc)[None, None].double())
             return out[0].clamp_min(0.0).numpy().transpose(1, 2, 0)
-        rows[f"network, fill {fill}"] = run
+        rows[f"{name} (N {cfg.blocks})"] = run
     return rows
 
 
@@ -113,37 +119,51 @@ def main() -> None:
     p.add_argument("--truth-renders", type=int, default=1, help="independent truth renders (>= 2: noise-corrected PSNR column)")
     p.add_argument("--seed", type=int, default=3)
     p.add_argument("--network", action="store_true", help="add the untrained lens network with each fill (the scene's own lens)")
+    p.add_argument("--network-options", nargs="*", default=[], metavar="K=V[,K=V]",
+                   help="with --network: one more network row per spec, these ModelConfig fields changed")
     p.add_argument("--variant", default=None)
+    p.add_argument("--load", type=Path, default=None, help="a --save folder: its AIF, depth and truths instead of Mitsuba")
     p.add_argument("--save", type=Path, default=None, help="folder to write the AIF and the truths to (EXR)")
     args = p.parse_args()
-    mi = activate(args.variant)
     w, h = args.size
     m = args.overscan
-    cam = axis_camera(mi, 85.0, 36.0, w, h)
-    desc = occlusion_scene(mi, cam, args.seed)  # the scene is placed for the frame itself
-    # the same pixel pitch over a wider film: the frame is the centre crop [m:m+h, m:m+w]
+    # the same pixel pitch over a film M px wider on every side: the frame is its centre crop
     lens = ThinLens(85.0, 1.4, 36.0 * (w + 2 * m) / w)
-    cam = axis_camera(mi, 85.0, lens.sensor_width_mm, w + 2 * m, h + 2 * m)
     crop = (slice(m, m + h), slice(m, m + w))
-    scene = mi.load_dict(desc)
-    if args.save:
-        plate = {k: v for k, v in desc.items() if k in ("type", "integrator", "environment", "wall", "floor")}
-        np.save(args.save / "plate.npy", render_aif(mi, mi.load_dict(plate), cam, 256)[crop])
-    aif, depth = render_aif(mi, scene, cam, 1024), render_depth(mi, scene, cam)
+    cases = {"fg": ("fg blurred", OCCLUSION_WALL_M), "bg": ("bg blurred", OCCLUSION_FG_FOCUS_M)}
+    if args.load:
+        from neuralbokeh.core.io import read_image
+
+        aif, depth = read_image(args.load / "aif.exr"), np.load(args.load / "depth.npy")
+        print(f"{args.load}: its AIF, depth and truths; {w}x{h} (+{m} px overscan), 85 mm f/1.4, disk")
+
+        def truths(case: str, focus: float) -> list[np.ndarray]:
+            return [read_image(f) for f in sorted(args.load.glob(f"{case.replace(' ', '_')}_truth_*.exr"))]
+    else:
+        mi = activate(args.variant)
+        desc = occlusion_scene(mi, axis_camera(mi, 85.0, 36.0, w, h), args.seed)  # the scene is placed for the frame itself
+        cam = axis_camera(mi, 85.0, lens.sensor_width_mm, w + 2 * m, h + 2 * m)
+        scene = mi.load_dict(desc)
+        aif, depth = render_aif(mi, scene, cam, 1024), render_depth(mi, scene, cam)
+        print(f"mitsuba {mi.__version__} {mi.variant()}; {w}x{h} (+{m} px overscan), 85 mm f/1.4, disk; truth {args.spp} spp thin-lens")
+
+        def truths(case: str, focus: float) -> list[np.ndarray]:
+            return [mitsuba_defocus(mi, scene, cam, lens, aperture, focus, args.spp, seed=17 + i).image[crop]
+                    for i in range(args.truth_renders)]
     aperture = ApertureModel()
     table = methods(aperture, args.steps, args.jumps)
     if args.network:
         coc_max = max(float(np.abs(lens.coc_px(depth, f, w + 2 * m, signed=True)).max()) for f in (OCCLUSION_WALL_M, OCCLUSION_FG_FOCUS_M))
-        table |= network_rows(aperture, lens, (h + 2 * m, w + 2 * m), coc_max)
-    print(f"mitsuba {mi.__version__} {mi.variant()}; {w}x{h} (+{m} px overscan), 85 mm f/1.4, disk; truth {args.spp} spp thin-lens")
+        table |= network_rows(aperture, lens, (h + 2 * m, w + 2 * m), coc_max, args.network_options)
     if args.save:
         from neuralbokeh.core.io import write_image
-    cases = {"fg": ("fg blurred", OCCLUSION_WALL_M), "bg": ("bg blurred", OCCLUSION_FG_FOCUS_M)}
+
+        write_image(args.save / "aif.exr", aif)  # with the overscan
+        np.save(args.save / "depth.npy", depth)
     for case, focus in (cases[c] for c in args.cases):
         coc = lens.coc_px(depth, focus, w + 2 * m, signed=True)
         t0 = time.perf_counter()
-        renders = [mitsuba_defocus(mi, scene, cam, lens, aperture, focus, args.spp, seed=17 + i).image[crop]
-                   for i in range(args.truth_renders)]
+        renders = truths(case, focus)
         truth = np.mean(renders, axis=0)
         peak = float(truth.max()) or 1.0
         # the variance of the mean's noise, per pixel, in peak-normalised linear units
@@ -154,9 +174,7 @@ def main() -> None:
         if args.save:
             for i, r in enumerate(renders):
                 write_image(args.save / f"{case.replace(' ', '_')}_truth_{i}.exr", r)
-            write_image(args.save / "aif.exr", aif)  # with the overscan
-            np.save(args.save / "depth.npy", depth)
-        print(f"{'method':<24} {'PSNR lin':>9} {'PSNR sRGB':>10} {'seconds':>8}" + (f" {'lin, noise-free est.':>21}" if noise else ""))
+        print(f"{'method':<34} {'PSNR lin':>9} {'PSNR sRGB':>10} {'seconds':>8}" + (f" {'lin, noise-free est.':>21}" if noise else ""))
         for name, fn in table.items():
             t0 = time.perf_counter()
             pred = np.asarray(fn(aif, coc))[crop]
@@ -166,7 +184,7 @@ def main() -> None:
             if noise:
                 mse = float(np.mean((pred.astype(np.float64) / peak - truth / peak) ** 2)) - noise
                 extra = f" {-10 * np.log10(mse):>21.2f}" if mse > 0 else f" {'(below the noise)':>21}"
-            print(f"{name:<24} {q['psnr_linear']:>9.2f} {q['psnr_srgb']:>10.2f} {sec:>8.2f}{extra}", flush=True)
+            print(f"{name:<34} {q['psnr_linear']:>9.2f} {q['psnr_srgb']:>10.2f} {sec:>8.2f}{extra}", flush=True)
 
 
 if __name__ == "__main__":

@@ -97,7 +97,10 @@ def _network(ds: FocalStackDataset, args: argparse.Namespace, **overrides: objec
 
 def _rows(ds: FocalStackDataset, args: argparse.Namespace) -> dict[str, Callable]:
     norm = ds.normalization
-    nets = {name: _network(ds, args, **kw) for name, kw in (
+    from bench_options import parse_option
+
+    extra = {f"network, {spec}": dict(parse_option(o) for o in spec.split(",")) for spec in args.network_options}
+    nets = {name: _network(ds, args, **kw) for name, kw in (*extra.items(),
         ("default", {}), ("margin 1", {"occlusion_margin_px": 1.0}), ("margin 4", {"occlusion_margin_px": 4.0}),
         ("normalize", {"fill": "normalize"}), ("far light", {"fill": "far_light"}), ("hermite", {"band_blend": "hermite"}),
         ("far light, hermite", {"fill": "far_light", "band_blend": "hermite"}))}
@@ -126,6 +129,7 @@ def _rows(ds: FocalStackDataset, args: argparse.Namespace) -> dict[str, Callable
         "network, fill far_light": net("far light"),
         "network, hermite blend": net("hermite"),
         "network, far_light, hermite": net("far light, hermite"),
+        **{name: net(name) for name in extra},
         "oracle": oracle(),
         "oracle, over": oracle(occlusion="over"),
         "oracle, fill normalize": oracle(fill="normalize"),
@@ -141,6 +145,8 @@ def main() -> None:
     p.add_argument("--split", choices=("test", "all"), default="test", help="'all': every scene of --data (a folder of held-out scenes)")
     p.add_argument("--tile", type=int, default=32)
     p.add_argument("--overlap", type=int, default=16)
+    p.add_argument("--network-options", nargs="*", default=[], metavar="K=V[,K=V]",
+                   help="one more network row per spec, these ModelConfig fields changed")
     args = p.parse_args()
     torch.set_num_threads(2)
     ds = FocalStackDataset([args.data], args.split, args.test_fraction, 0)

@@ -1,8 +1,8 @@
-"""What a model option costs a 1080p render: the untrained prior of ``bench_runtime.py`` (N = 20,
+"""What a model option costs a 1080p render: the untrained prior of ``bench_runtime.py`` (N = 22,
 240 + 24 px tiles, a 7-blade aperture) with one ``ModelConfig`` option changed, against the prior
 as it is, each through its default export (``multires:10``), in one process, renders alternating.
 
-    python benchmarks/bench_options.py [--options band_blend=hermite fill=far_light] [--repeats 7] [--reuse]
+    python benchmarks/bench_options.py [--options band_blend=hermite fill=far_light near_focus_px=4,blocks=22] [--repeats 7] [--reuse]
 
 About 12 minutes on 2 cores, most of it the exports' parity checks. The frames are
 ``bench_runtime.py``'s procedural 1920x1080 frame (largest |CoC| 40 px), a third of its CoC and
@@ -15,6 +15,7 @@ with the option costs.
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 from pathlib import Path
 
@@ -29,7 +30,7 @@ from bench_runtime import H, W, _frames, alternating_ms, make_model  # noqa: E40
 from neuralbokeh.runtime.onnx_model import OnnxBokeh  # noqa: E402
 
 
-def _option(spec: str) -> tuple[str, object]:
+def parse_option(spec: str) -> tuple[str, object]:
     """``KEY=VALUE`` -> (key, value as an int, float, true / false or else the string)."""
     key, sep, value = spec.partition("=")
     if not sep or not key or not value:
@@ -46,8 +47,8 @@ def _option(spec: str) -> tuple[str, object]:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--options", nargs="+", default=["band_blend=hermite", "fill=far_light"], metavar="KEY=VALUE",
-                   help="ModelConfig options, each timed on its own against the prior as it is")
+    p.add_argument("--options", nargs="+", default=["band_blend=hermite", "fill=far_light"], metavar="K=V[,K=V]",
+                   help="ModelConfig options (comma-separated fields change together), each spec timed against the prior as it is")
     p.add_argument("--repeats", type=int, default=7)
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--seed", type=int, default=3)
@@ -55,11 +56,12 @@ def main() -> None:
     p.add_argument("--reuse", action="store_true", help="keep the exports of an earlier run")
     args = p.parse_args()
     args.out_dir.mkdir(parents=True, exist_ok=True)
-    variants = {"prior": {}} | {spec: dict([_option(spec)]) for spec in args.options}
+    variants = {"prior": {}} | {spec: dict(parse_option(o) for o in spec.split(",")) for spec in args.options}
     frames, _ = _frames(args, H, W, 40.0)
     files = {}
-    for i, (name, options) in enumerate(variants.items()):
-        files[name] = make_model(args.out_dir, args.reuse, ("default",), tag=f"v{i}_", options=options)["default"]
+    for name, options in variants.items():  # files named by their options: --reuse finds each one's own
+        tag = re.sub(r"[^A-Za-z0-9.]+", "_", name) + "_"
+        files[name] = make_model(args.out_dir, args.reuse, ("default",), tag=tag, options=options)["default"]
     models = {name: OnnxBokeh(path, threads=args.threads) for name, path in files.items()}
     print(f"{'frame':16s} " + " ".join(f"{name + ' ms':>22s}" for name in models) + "   ratios to the prior")
     for frame, path in frames.items():

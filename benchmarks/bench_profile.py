@@ -1,7 +1,7 @@
 """Where a lens export spends a 1080p render: onnxruntime's own profiler, node times summed into
 the frame-wide ops, the per-tile ops and the per-band ops.
 
-    python benchmarks/bench_profile.py [--onnx runs/bench_options/v0_default.onnx] [--seed 3]
+    python benchmarks/bench_profile.py [--onnx runs/bench_options/prior_default.onnx] [--seed 3]
 
 The file: a lens network's export for 1920x1080 plates (default: the untrained prior's default
 export that ``bench_options.py`` writes; run it first). The frames: ``bench_runtime.py``'s
@@ -75,7 +75,7 @@ def profile(path: Path, aif: np.ndarray, coc: np.ndarray, threads: int, prefix: 
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--onnx", type=Path, default=ROOT / "runs" / "bench_options" / "v0_default.onnx")
+    p.add_argument("--onnx", type=Path, default=ROOT / "runs" / "bench_options" / "prior_default.onnx")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--seed", type=int, default=3)
     p.add_argument("--out-dir", type=Path, default=ROOT / "runs" / "bench_profile")

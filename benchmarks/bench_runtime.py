@@ -5,7 +5,7 @@
     python benchmarks/bench_runtime.py --model runs/any_res/checkpoint.pt [--size 3840 2160] [--tiles 256 384]
 
 The model: a lens network (``architecture = "lens"``) built for 1920x1080 with k_max = 41
-(coc_scale_px 41, N = 20 blocks), 240 px tiles with 24 px overlap, *initialised from the lens
+(coc_scale_px 41, N = 22 blocks: `blocks = "auto"` on the near-focus lattice), 240 px tiles with 24 px overlap, *initialised from the lens
 prior* (``pupil_init = "aperture"``: a 7-blade aperture), not trained: training at 1080p is out
 of reach on a CPU, and the run time does not depend on the weights. It is exported four ways:
 the default (``multires:10``), the direct-convolution export (``--kernels direct``, one depthwise
@@ -111,7 +111,8 @@ def make_model(out: Path, reuse: bool, names: tuple[str, ...] = tuple(EXPORTS), 
 
     out.mkdir(parents=True, exist_ok=True)
     aperture = ApertureModel(parse_aperture("polygon:7"))
-    cfg = ModelConfig(blocks=20, tile=TILE, overlap=OVERLAP, architecture="lens", pupil_init="aperture", **(options or {}))
+    base = {"blocks": "auto", "tile": TILE, "overlap": OVERLAP, "architecture": "lens", "pupil_init": "aperture"}
+    cfg = ModelConfig(**base | (options or {})).resolved(C_MAX)
     contract = Contract(H, W, Normalization(0.18), C_MAX, C_MAX, ThinLens(50.0, 1.8, 36.0), aperture.to_dict())
     ckpt = checkpoint or out / f"{tag}prior_1080p.pt"
     if checkpoint is None and not (reuse and ckpt.exists()):

@@ -9,8 +9,17 @@ import pytest
 import torch
 
 from neuralbokeh.checkpoint import load_model
-from neuralbokeh.core.bands import BandPlan, active_bands, band_diameters, hermite_weights, lattice_step
+from neuralbokeh.core.bands import (
+    BandPlan,
+    active_bands,
+    band_diameters,
+    hermite_weights,
+    lattice_coordinate,
+    lattice_diameter,
+    lattice_step,
+)
 from neuralbokeh.export.exporter import plate_model
+from neuralbokeh.networks import ModelConfig
 from neuralbokeh.networks.lens import band_gates
 from neuralbokeh.runtime import OnnxBokeh
 
@@ -37,6 +46,40 @@ def test_numpy_and_torch_read_the_same_band_position():
     np.testing.assert_allclose(got_np[: len(d)], np.arange(len(d)), atol=1e-12)  # band n at its centre
     assert got_np[-2] == got_np[-1] == 6.0  # beyond d_N: N
     assert (got_np[-5:-2] == 0.0).all()  # 0, 0.5 and 1 px: a point
+
+
+def test_the_near_focus_lattice_is_dense_near_focus_and_reads_alike_everywhere():
+    """``near_px = a``: the lattice is uniform in ``w(c) = c + a (1 - 1/c)``. Its inverse is exact;
+    with a = 0 it is the uniform lattice; band spacings grow from near focus outwards; the
+    plan's last centre still reaches the frame's CoC; numpy, torch and the plan agree on the
+    band of a CoC; the Hermite slope's step is the lattice's local spacing in |c|; ``blocks =
+    "auto"`` adds fewer than a / 2 + 1 bands; a file written before the term plans uniformly."""
+    c = np.linspace(1.0, 60.0, 600)
+    np.testing.assert_allclose(lattice_diameter(lattice_coordinate(c, 4.0), 4.0), c, rtol=1e-12)
+    np.testing.assert_array_equal(lattice_coordinate(c, 0.0), c - 1.0)
+    np.testing.assert_allclose(band_diameters(13.0, 6, 0.0), band_diameters(13.0, 6))
+    step = lattice_step(13.0, 8, 4.0)
+    assert step <= 2.0
+    plan = BandPlan.for_frame(13.0, step, 13.0, 4.0)
+    d = plan.diameters
+    assert plan.blocks == 8 and d[-1] == pytest.approx(13.0) and 1.0 < d[1] < 1.6
+    gaps = np.diff(np.r_[1.0, d[1:]])  # from the point's edge (1 px) outwards
+    assert np.all(np.diff(gaps) > 0) and gaps[0] < 0.3 * gaps[-1], gaps
+    assert np.all(d[1:] <= 2 * np.arange(1, 9) + 1)  # block n's 2n + 1 px kernel holds its band
+    for coc in (1.2, 2.0, 7.5, 13.0, 20.0):  # beyond the range: more bands, the same lattice
+        p = BandPlan.for_frame(coc, step, 13.0, 4.0)
+        assert p.c_plan_px >= coc - 1e-9 and (p.blocks == 1 or p.diameters[-2] < coc), coc
+    x = np.concatenate([d, -d, (d[1:] + d[:-1]) / 2, [0.5, 40.0]])
+    np.testing.assert_allclose(plan.position(x), plan.position(torch.from_numpy(x)).numpy(), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(plan.position(d), np.arange(9), atol=1e-9)
+    central = (d[3] - d[1]) / 2.0
+    assert plan.band_step_px(2) == pytest.approx(central, rel=0.05)
+    for c_max in (5.0, 13.0, 40.0, 120.0):
+        extra = ModelConfig(near_focus_px=4.0).resolved(c_max).blocks - ModelConfig(near_focus_px=0.0).resolved(c_max).blocks
+        assert 0 <= extra <= 3, (c_max, extra)
+    old = BandPlan.from_dict({"step_px": 2.0, "blocks": 6, "fill_radius_px": 7})
+    assert old.near_px == 0.0 and np.allclose(old.diameters, band_diameters(13.0, 6))
+    assert BandPlan.from_dict(plan.to_dict()) == plan
 
 
 def test_hermite_weights_keep_the_flux_and_live_where_the_hat_does():

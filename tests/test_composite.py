@@ -209,7 +209,7 @@ def test_a_blurred_foreground_over_a_sharp_plate_matches_the_reference_on_the_co
     aperture = ApertureModel(parse_aperture("polygon:7"))
     probe = ThinLens(50.0, 1.0, 36.0)
     lens = ThinLens(50.0, float(abs(probe.coc_px(1.0, focus, w, signed=True))) / coc, 36.0)
-    cfg = ModelConfig(blocks=4, tile=16, overlap=8, architecture="lens", pupil_init="aperture")
+    cfg = ModelConfig(tile=16, overlap=8, architecture="lens", pupil_init="aperture").resolved(8.0)
     contract = Contract(h, w, Normalization(0.18), 8.0, 8.0, lens, aperture.to_dict())
     torch.manual_seed(0)
     save_checkpoint(tmp_path / "prior.pt", {"model_config": cfg.to_dict(), "contract": contract.to_dict(),

@@ -150,12 +150,12 @@ def test_the_pupil_picture_shows_the_learned_pupil_beside_the_declared_aperture(
 
     shape = Polygon(7)
     contract = Contract(32, 32, Normalization(), 9.0, 9.0, aperture=ApertureModel(shape).to_dict())
-    model = build_model(ModelConfig(blocks=4, tile=16, overlap=4, pupil_init="aperture", vignetting=False), contract)
+    model = build_model(ModelConfig(tile=16, overlap=4, pupil_init="aperture", vignetting=False).resolved(9.0), contract)
     centre = learned_pupils(model, [(0.0, 0.0)])[0]
     np.testing.assert_allclose(centre, reference_panel(shape, model.config.pupil_size), atol=1.01e-3)  # the 1e-3 floor
     views = reference_panel(ViewGrid(np.ones((3, 3))), 48)[..., 0]  # a light field's views: 9 points, not 9 cells
     assert (views > 0).sum() == 9 and views.sum() == pytest.approx(9.0)
-    cat = build_model(ModelConfig(blocks=4, tile=16, overlap=4, pupil_init="aperture"), contract)
+    cat = build_model(ModelConfig(tile=16, overlap=4, pupil_init="aperture").resolved(9.0), contract)
     with torch.no_grad():
         cat.vignette.copy_(torch.tensor([0.6, 0.6, 0.0]))  # a unit circle moving 0.6 radii per unit of field
     corner = learned_pupils(cat, [(1.0, -1.0)])[0, ..., 1]  # the top-right corner: x right, y up

@@ -298,6 +298,27 @@ def test_the_hermite_blend_exports_direct_and_on_coarser_grids(busy_checkpoint, 
     assert np.abs(direct - hat).max() > 1e-3
 
 
+def test_a_checkpoint_from_before_the_near_focus_lattice_keeps_its_uniform_bands(busy_checkpoint, busy_onnx, tmp_path):
+    """A checkpoint whose model config has no ``near_focus_px`` (written before it existed) is
+    rebuilt on the lattice uniform in |c| that it was trained on, not today's default; it
+    exports directly and on coarser grids with parity; the default lattice's file differs."""
+    data = load_checkpoint(busy_checkpoint)
+    assert data["model_config"]["near_focus_px"] > 0  # the default the fixture trained with
+    data["model_config"] = {k: v for k, v in data["model_config"].items() if k != "near_focus_px"}
+    ckpt = tmp_path / "uniform.pt"
+    save_checkpoint(ckpt, {k: v for k, v in data.items() if k not in ("format", "format_version", "package_version")})
+    model, _ = load_model(ckpt)
+    assert model.config.near_focus_px == 0.0 and model.plan(model.contract.max_coc_px).near_px == 0.0
+    x = calibration_inputs(*model.contract.size, count=2, seed=7)
+    for kernels in ("direct", None):
+        report = export_checkpoint(ckpt, tmp_path / f"u_{kernels}.onnx", kernels=kernels, threads=1)
+        assert max(report["parity"].values()) <= 1e-4, (kernels, report["parity"])
+    uniform = _run_onnx(tmp_path / "u_direct.onnx", x[:, :3].numpy(), x[:, 3:].numpy())
+    with torch.no_grad():
+        assert np.abs(uniform - model(x).numpy()).max() < 1e-4
+    assert np.abs(uniform - _run_onnx(busy_onnx, x[:, :3].numpy(), x[:, 3:].numpy())).max() > 1e-3
+
+
 def test_an_export_may_choose_its_tiles_and_only_the_field_sampling_changes(busy_checkpoint, tmp_path):
     """Tile cores are an export setting: with one pupil over the whole sensor a file with larger
     tiles renders what the trained tiles render; with a field-dependent pupil it samples the field
@@ -306,6 +327,10 @@ def test_an_export_may_choose_its_tiles_and_only_the_field_sampling_changes(busy
     # one pupil everywhere: no field corrections, the cat-eye's circle left where it is on the axis
     still = {"pupil_field": lambda v: torch.zeros_like(v), "vignette": lambda v: torch.cat([torch.zeros(2), v[2:]])}
     flat = dict(data, model_state={k: still.get(k, lambda v: v)(v) for k, v in data["model_state"].items()})
+    # on the lattice uniform in the CoC, whose last kernel (9 px) fits the fixture's 4 px overlap:
+    # the default lattice's 13 px kernels (two more bands, each block 2n + 1 px) carry their
+    # pupils' 1e-3 floor past a window's edge, and what is lost there differs with the tiles (3.4e-5)
+    flat["model_config"] = {**data["model_config"], "near_focus_px": 0.0, "blocks": 4}
     save_checkpoint(tmp_path / "flat.pt", {k: v for k, v in flat.items() if k not in ("format", "format_version", "package_version")})
     model, _ = load_model(busy_checkpoint)
     x = calibration_inputs(*model.contract.size, count=2, seed=6)

@@ -24,10 +24,10 @@ from neuralbokeh.networks import ModelConfig, build_model
 from neuralbokeh.runtime.onnx_model import make_session as session
 
 
-def _random_checkpoint(path, height, width, architecture, blocks=3):
-    """A ``height`` x ``width`` network of ``architecture`` made busy as the suite's shared
-    checkpoints are (``conftest.busy``)."""
-    cfg = ModelConfig(blocks=blocks, features=4, tile=16, overlap=4, architecture=architecture)
+def _random_checkpoint(path, height, width, architecture):
+    """A ``height`` x ``width`` network of ``architecture`` (N for a 7 px CoC scale) made busy as
+    the suite's shared checkpoints are (``conftest.busy``)."""
+    cfg = ModelConfig(features=4, tile=16, overlap=4, architecture=architecture).resolved(7.0)
     contract = Contract(height, width, Normalization(), 7.0, 7.0, ThinLens(50.0, 2.0, 36.0))
     torch.manual_seed(height * 1000 + width)
     plain = save_checkpoint(path.with_name(path.stem + "_plain.pt"), {

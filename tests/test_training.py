@@ -61,7 +61,9 @@ threads = 1
 def test_a_stored_model_config_reads_back_with_the_dataclass_defaults():
     cfg = ModelConfig(blocks=3, tile=16, overlap=4, pupil_init="disk")
     assert ModelConfig.from_dict(cfg.to_dict()) == cfg
-    assert ModelConfig.from_dict({"blocks": 3}) == ModelConfig(blocks=3)  # left out: the default, never another
+    assert ModelConfig.from_dict({"blocks": 3, "near_focus_px": 4.0}) == ModelConfig(blocks=3)  # left out: the default
+    # a key whose default changed since: left out, it means what it meant then (a uniform lattice)
+    assert ModelConfig.from_dict({"blocks": 3}) == ModelConfig(blocks=3, near_focus_px=0.0)
     with pytest.raises(ValueError, match=r"unknown model config keys \['kernels'\]"):
         ModelConfig.from_dict({"blocks": 3, "kernels": "growing"})
 
@@ -131,7 +133,7 @@ def test_train_writes_checkpoint_log_and_metrics(tiny_dataset, tmp_path):
     ck_path = Path(summary["checkpoint"])
     model, ck = load_model(ck_path)
     assert isinstance(model.config, ModelConfig) and model.contract.size == (32, 40)
-    assert ck["model_config"]["blocks"] == 4  # max |CoC| 8.0 px -> N = 4
+    assert ck["model_config"]["blocks"] == 6  # max |CoC| 8.0 px -> N = 4 on a uniform lattice, 2 more near focus
     contract = ck["contract"]
     assert contract["lens"]["focal_length_mm"] == 85.0 and contract["aperture"]["cat_eye"] == 0.5
     assert contract["normalization"]["kind"] == "mobius-log" and contract["coc_scale_px"] > 1
@@ -281,7 +283,7 @@ def test_model_table_is_the_model_config():
     # [model] of a training config is ModelConfig itself: one class, "auto" blocks resolved from the data
     cfg = build_config({"data": {"roots": ["x"]}, "model": {"blocks": "auto", "tile": 32, "overlap": 8}})
     assert isinstance(cfg.model, ModelConfig) and cfg.model.blocks == "auto"
-    assert cfg.model.resolved(8.0).blocks == 4 and cfg.model.resolved(8.0).tile == 32
+    assert cfg.model.resolved(8.0).blocks == 6 and cfg.model.resolved(8.0).tile == 32  # 4 on a uniform lattice, 2 near focus
     with pytest.raises(ValueError, match="model.tiling must be one of"):
         build_config({"data": {"roots": ["x"]}, "model": {"tiling": "grid"}})
 
@@ -358,7 +360,7 @@ def test_the_ssim_term_is_the_evaluation_ssim_on_the_pixels_the_loss_keeps():
     from kornia.losses import ssim_loss
     from kornia.metrics import ssim
 
-    cfg = ModelConfig(blocks=4, tile=16, overlap=4)
+    cfg = ModelConfig(tile=16, overlap=4).resolved(8.0)
     model = build_model(cfg, Contract(24, 24, Normalization(), 8.0, 8.0)).eval()
     g = torch.Generator().manual_seed(5)
     x = torch.cat([torch.rand(2, 3, 24, 24, generator=g) * 1.8 - 0.9, torch.rand(2, 1, 24, 24, generator=g) * 2 - 1], 1)
@@ -392,7 +394,8 @@ def _fit_one_band(truth: ApertureModel, scale: float, steps: int) -> tuple[torch
     train_cfg = tomllib.loads((ROOT / "configs" / "quickstart.toml").read_text())["train"]
     size, c_max = 48, 11.0
     torch.manual_seed(0)
-    model = build_model(ModelConfig(blocks=7, tile=size, overlap=12, pupil_init="disk"),
+    # a lattice uniform in the CoC: band 6 at 9.6 px, large enough to show a square's corners
+    model = build_model(ModelConfig(blocks=7, tile=size, overlap=12, pupil_init="disk", near_focus_px=0.0),
                         Contract(size, size, Normalization(), c_max, c_max))
     d = float(model.plan(c_max).diameters[6])  # on a band centre: one band's kernel is all that is learned
     true_k = torch.from_numpy(truth.kernels(d * scale)[1]).float()
@@ -423,7 +426,7 @@ def _fit_one_band(truth: ApertureModel, scale: float, steps: int) -> tuple[torch
 
 def test_a_disk_is_barely_rough_and_not_coloured_at_all():
     contract = Contract(32, 32, Normalization(), 9.0, 9.0)
-    disk = build_model(ModelConfig(blocks=4, tile=16, overlap=4, pupil_init="disk"), contract)
+    disk = build_model(ModelConfig(tile=16, overlap=4, pupil_init="disk").resolved(9.0), contract)
     assert float(disk.pupil_roughness().detach()) == pytest.approx(0.14, abs=0.02)
     assert float(disk.pupil_chroma().detach()) == pytest.approx(0.0, abs=1e-6)  # float32 rounding of the grey mean
     with torch.no_grad():  # CoC scales 1.04 / 1 / 0.96: the mean absolute deviation of their logs

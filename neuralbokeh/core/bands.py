@@ -1,8 +1,13 @@
 """The CoC bands of the lens network, torch-free: the one definition of a frame's plan.
 
-A lens network splits each pixel's |CoC| into bands on a px lattice ``d_n = 1 + n step``
-(band 0: ``|c| <= 1`` px, a point). A frame runs the bands up to the first whose centre
-reaches its own largest |CoC|. The network (``networks.lens``), the ONNX builder
+A lens network splits each pixel's |CoC| into bands on a lattice uniform in the *lattice
+coordinate* ``w(|c|) = |c| + a (1 - 1 / |c|)`` (px; ``a`` = ``near_px``, 0 for a lattice uniform
+in |c|): band 0 is ``|c| <= 1`` px, a point, and band n is centred where ``w(d_n) = 1 + n step``.
+Near focus a step is a large fraction of a band's diameter, and a blend of two kernels there is
+far from the kernel in between (a highlight at 1.5 px blended from a point and a 3 px disk); the
+second term makes the bands ``1 + a / |c|^2`` times denser there and adds fewer than ``a /
+step`` bands in all, wherever the range ends. A frame runs the bands up to the first
+whose centre reaches its own largest |CoC|. The network (``networks.lens``), the ONNX builder
 (``export.lens_graph``) and the runtime (``runtime.onnx_model``, which switches off the bands a
 frame's tiles do not use) all read the lattice, the plan and the band of a CoC from here; the
 exported file carries its :class:`BandPlan` so that the runtime plans with the same numbers.
@@ -17,65 +22,93 @@ import numpy as np
 
 from .tiling import TileLayout
 
-# |c| <= POINT_PX is band 0 (in focus: a point); band n >= 1 is centred at POINT_PX + n step
+# |c| <= POINT_PX is band 0 (in focus: a point); band n >= 1 is centred where w(d_n) = POINT_PX + n step
 POINT_PX = 1.0
 
 
-def lattice_step(c_train_px: float, blocks: int) -> float:
-    """The lattice spacing (px) that puts ``blocks`` bands over a training range whose largest
-    |CoC| is ``c_train_px``: ``d_N = c_train`` (2 px when ``blocks`` is 0)."""
-    return (max(c_train_px, POINT_PX) - POINT_PX) / blocks if blocks > 0 else 2.0
+def lattice_coordinate(coc_px: Any, near_px: float) -> Any:
+    """``w(max(|c|, 1)) - 1`` (px) of each signed CoC ``coc_px`` (a float, a numpy array or a torch
+    tensor, the same ops), ``w(c) = c + near_px (1 - 1 / c)``: 0 up to 1 px, then increasing;
+    ``|c| - 1`` when ``near_px`` is 0."""
+    m = abs(coc_px)
+    m = max(m, POINT_PX) if isinstance(m, float | int) else m.clip(min=POINT_PX)
+    return m - POINT_PX + near_px * (1.0 - POINT_PX / m) if near_px else m - POINT_PX
 
 
-def band_diameters(max_coc_px: float, blocks: int) -> np.ndarray:
-    """Centres ``d_0 = 0, d_n = 1 + n (max_coc_px - 1) / N`` (px) of the CoC bands, ``(N + 1,)``."""
-    d = POINT_PX + np.arange(blocks + 1) * (max(max_coc_px, POINT_PX) - POINT_PX) / max(blocks, 1)
+def lattice_diameter(coordinate_px: Any, near_px: float) -> np.ndarray:
+    """The |CoC| (px) at lattice coordinate ``coordinate_px`` >= 0 (numpy or float): the inverse
+    of :func:`lattice_coordinate`, the positive root of ``c^2 + (a - y) c - a = 0``, ``y`` the
+    coordinate + 1."""
+    y = np.asarray(coordinate_px, dtype=np.float64) + POINT_PX
+    b = near_px - y
+    return 0.5 * (np.sqrt(b * b + 4.0 * near_px) - b)
+
+
+def lattice_step(c_train_px: float, blocks: int, near_px: float = 0.0) -> float:
+    """The lattice spacing (px of lattice coordinate) that puts ``blocks`` bands over a training
+    range whose largest |CoC| is ``c_train_px``: ``d_N = c_train`` (2 px when ``blocks`` is 0)."""
+    return lattice_coordinate(float(c_train_px), near_px) / blocks if blocks > 0 else 2.0
+
+
+def band_diameters(max_coc_px: float, blocks: int, near_px: float = 0.0) -> np.ndarray:
+    """Centres ``d_0 = 0``, ``d_n`` (px) of the CoC bands, ``(N + 1,)``, the last at ``max_coc_px``."""
+    step = lattice_coordinate(float(max_coc_px), near_px) / max(blocks, 1)
+    d = lattice_diameter(np.arange(blocks + 1) * step, near_px)
     d[0] = 0.0
     return d
 
 
 class BandPlan(NamedTuple):
-    """The bands a frame runs: ``blocks`` bands of the lattice ``d_n = 1 + n step_px`` (px), the
-    last centred at ``c_plan_px``; ``fill_radius_px``: how far (px) the hidden-background fill
-    looks for occluders."""
+    """The bands a frame runs: ``blocks`` bands of the lattice ``w(d_n) = 1 + n step_px`` (px,
+    ``w(c) = c + near_px (1 - 1 / c)``), the last centred at ``c_plan_px``; ``fill_radius_px``: how far
+    (px) the hidden-background fill looks for occluders."""
 
     step_px: float
     blocks: int
     fill_radius_px: int
+    near_px: float = 0.0
 
     @classmethod
-    def for_frame(cls, coc_px: float, step_px: float, c_train_px: float) -> BandPlan:
+    def for_frame(cls, coc_px: float, step_px: float, c_train_px: float, near_px: float = 0.0) -> BandPlan:
         """The plan of a frame whose largest |CoC| is ``coc_px``: the fewest bands whose last
         centre reaches it (none up to 1 px); the fill reaches half the trained range's largest
         CoC, or the plan's where that is larger (a frame within the range gets the same fill
         whatever its plan)."""
-        n = 0 if coc_px <= POINT_PX or step_px <= 0 else max(1, math.ceil((coc_px - POINT_PX) / step_px - 1e-6))
-        c_plan = POINT_PX + n * step_px
-        return cls(float(step_px), int(n), math.ceil(max(c_plan, c_train_px) / 2.0))
+        n = 0 if coc_px <= POINT_PX or step_px <= 0 else max(1, math.ceil(lattice_coordinate(float(coc_px), near_px) / step_px - 1e-6))
+        c_plan = float(lattice_diameter(n * step_px, near_px))
+        return cls(float(step_px), int(n), math.ceil(max(c_plan, c_train_px) / 2.0), float(near_px))
 
     @property
     def c_plan_px(self) -> float:
-        return POINT_PX + self.blocks * self.step_px
+        return float(lattice_diameter(self.blocks * self.step_px, self.near_px))
 
     @property
     def diameters(self) -> np.ndarray:
         """``(N + 1,)`` band centres (px), ``d_0 = 0``."""
-        return band_diameters(self.c_plan_px, self.blocks)
+        d = lattice_diameter(np.arange(self.blocks + 1) * self.step_px, self.near_px)
+        d[0] = 0.0
+        return d
+
+    def band_step_px(self, n: int) -> float:
+        """``d d / d pos`` (px of CoC per band) at band ``n``'s centre: the lattice step in |c|
+        there, which scales a kernel's slope in the diameter to one per band (Hermite blend)."""
+        return self.step_px / (1.0 + self.near_px / max(float(self.diameters[n]), POINT_PX) ** 2)
 
     def position(self, coc_px: Any) -> Any:
         """Continuous band index in ``[0, N]`` of each pixel's signed CoC ``coc_px`` (px; a numpy
-        array or a torch tensor, the same ops): 0 up to 1 px, ``n`` at ``d_n``, linear in
-        between; beyond ``d_N`` it stays at N."""
+        array or a torch tensor, the same ops): 0 up to 1 px, ``n`` at ``d_n``, linear in the
+        lattice coordinate in between; beyond ``d_N`` it stays at N."""
         if self.blocks == 0 or self.step_px <= 0:  # every CoC is a point
             return abs(coc_px) * 0.0
-        return ((abs(coc_px) - POINT_PX).clip(min=0.0) * (1.0 / self.step_px)).clip(max=float(self.blocks))
+        return (lattice_coordinate(coc_px, self.near_px) * (1.0 / self.step_px)).clip(max=float(self.blocks))
 
     def to_dict(self) -> dict[str, Any]:
-        return {"step_px": self.step_px, "blocks": self.blocks, "fill_radius_px": self.fill_radius_px}
+        return {"step_px": self.step_px, "blocks": self.blocks, "fill_radius_px": self.fill_radius_px, "near_px": self.near_px}
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> BandPlan:
-        return cls(float(d["step_px"]), int(d["blocks"]), int(d["fill_radius_px"]))
+        # files written before the lattice had a near-focus term carry no near_px: uniform
+        return cls(float(d["step_px"]), int(d["blocks"]), int(d["fill_radius_px"]), float(d.get("near_px", 0.0)))
 
 
 def hermite_weights(pos: Any, n: int) -> tuple[Any, Any]:

@@ -341,7 +341,7 @@ class _LensExport:
                             for n in range(1, m.config.blocks + 1)}
             slopes = {n: m.gain_slopes(float(d[n])).double().numpy() for n in range(1, m.config.blocks + 1)}
             kernel_slopes = None if m.config.band_blend != "hermite" else {
-                n: reduce_kernel(m.kernel_slopes(n, pupils, float(d[n]), self.plan.step_px).double(), self.scales[n]).numpy()
+                n: reduce_kernel(m.kernel_slopes(n, pupils, float(d[n]), self.plan.band_step_px(n)).double(), self.scales[n]).numpy()
                 for n in range(1, m.config.blocks + 1)}
         flow = None if not bool(drift.abs().max() > 0) else ((drift.numpy(), rows.numpy(), cols.numpy()), slopes)
         gain = None if m.fill_gain is None else float(m.far_light_gain().detach())

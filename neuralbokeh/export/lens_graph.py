@@ -323,7 +323,10 @@ def _tile(b: GraphBuilder, k: int, window: str, kernels: Mapping[int, np.ndarray
     if blocks == 0:
         g0, pos = src_mask, None
     else:  # BandPlan.position, op for op
-        shifted = g.op("Max", g.op("Sub", g.op("Abs", c), g.c("point", POINT_PX)), g.c("zero", 0.0))
+        m = g.op("Max", g.op("Abs", c), g.c("point", POINT_PX))
+        shifted = g.op("Sub", m, g.c("point", POINT_PX))
+        if plan.near_px > 0:  # the lattice coordinate's near-focus term
+            shifted = g.op("Add", shifted, g.op("Mul", g.op("Sub", one, g.op("Reciprocal", m)), g.c("near_px", plan.near_px)))
         pos = g.op("Min", g.op("Mul", shifted, g.c("inv_step", 1.0 / plan.step_px)), g.c("n_max", float(blocks)))
         g0 = g.op("Mul", g.op("Relu", g.op("Sub", one, pos)), src_mask)
     zeros6 = g.op("Mul", g.op("Concat", rgb, rgb, axis=1), g.c("zero", 0.0))

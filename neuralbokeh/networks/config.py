@@ -18,6 +18,9 @@ ARCHITECTURES = ("lens", "paper")
 PUPIL_INITS = ("disk", "gaussian", "aperture")
 FILLS = ("background", "normalize", "far_light")
 BAND_BLENDS = ("hat", "hermite")
+# what a checkpoint written before a key existed meant by leaving it out, where the default has
+# changed since: its network is rebuilt as it was trained
+LEGACY_DEFAULTS = {"near_focus_px": 0.0}
 KERNEL_SIZES = ("growing", "fixed3")
 TILINGS = ("overlap", "none", "no_overlap")
 HEADS = ("identity", "paper")
@@ -66,8 +69,13 @@ class ModelConfig:
             interpolation of the two kernels and their slopes in the CoC: each band scatters a
             second feature by its kernel's derivative in the diameter; about a quarter of the
             hat's kernel error, for twice the convolutions).
+        near_focus_px: the band lattice's near-focus term ``a`` (px, >= 0; lens): the bands are
+            uniform in ``|c| + a (1 - 1 / |c|)``, so ``1 + a / |c|^2`` times denser near focus,
+            where a blend of a point and a 3 px disk is far from a highlight's 1.5 px disk;
+            ``blocks = "auto"`` then adds about ``a / 2`` bands. 0: uniform in |c|.
         (``features``, ``head`` and the FFT thresholds: paper only; ``pupil_*``,
-        ``field_grid``, ``vignetting``, ``occlusion_margin_px``, ``fill``, ``band_blend``: lens only; the rest: both.)
+        ``field_grid``, ``vignetting``, ``occlusion_margin_px``, ``fill``, ``band_blend``,
+        ``near_focus_px``: lens only; the rest: both.)
     """
 
     architecture: str = "lens"
@@ -87,6 +95,7 @@ class ModelConfig:
     occlusion_margin_px: float = 2.0
     fill: str = "background"
     band_blend: str = "hat"
+    near_focus_px: float = 4.0
 
     def __post_init__(self) -> None:
         for name in ("features", "tile", "fft_min_kernel", "fft_min_kernel_train"):
@@ -103,6 +112,9 @@ class ModelConfig:
             raise ValueError(f"model.vignetting must be true or false, got {self.vignetting!r}")
         if not isinstance(self.pupil_size, int) or self.pupil_size < 4:
             raise ValueError(f"model.pupil_size must be an integer >= 4, got {self.pupil_size!r}")
+        a = self.near_focus_px
+        if isinstance(a, bool) or not (isinstance(a, (int, float)) and math.isfinite(a) and a >= 0):
+            raise ValueError(f"model.near_focus_px must be a finite number >= 0 px, got {a!r}")
         m = self.occlusion_margin_px
         if not (isinstance(m, (int, float)) and math.isfinite(m) and m > 0):
             raise ValueError(f"model.occlusion_margin_px must be a finite number > 0 px, got {m!r}")
@@ -113,10 +125,18 @@ class ModelConfig:
                 raise ValueError(f"model.{name} must be one of {allowed}, got {getattr(self, name)!r}")
 
     def resolved(self, max_coc_px: float) -> ModelConfig:
-        """This config with ``blocks = "auto"`` replaced by N for the data's largest |CoC| (px)."""
+        """This config with ``blocks = "auto"`` replaced by N for the data's largest |CoC| (px):
+        the fewest bands at most 2 px of lattice coordinate apart (``2N + 1 >= max CoC`` on a
+        lattice uniform in |c|, ``optics.blocks_for_coc``)."""
+        from ..core.bands import lattice_coordinate
         from ..core.optics import blocks_for_coc
 
-        return self if self.blocks != "auto" else replace(self, blocks=blocks_for_coc(max_coc_px))
+        if self.blocks != "auto":
+            return self
+        n = blocks_for_coc(max_coc_px)
+        if self.architecture == "lens" and self.near_focus_px > 0:
+            n = max(n, math.ceil(lattice_coordinate(float(max_coc_px), float(self.near_focus_px)) / 2.0 - 1e-9))
+        return replace(self, blocks=n)
 
     def check_resolved(self) -> None:
         """Raise ``ValueError`` while ``blocks`` is still ``"auto"`` (a network needs N)."""
@@ -137,9 +157,10 @@ class ModelConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> ModelConfig:
-        """Read :meth:`to_dict`'s output; a key left out takes the dataclass's default."""
+        """Read :meth:`to_dict`'s output (a checkpoint's); a key left out takes the value it had
+        before the key existed (:data:`LEGACY_DEFAULTS`), else the dataclass's default."""
         known = {f.name for f in fields(cls)}
         unknown = set(d) - known
         if unknown:
             raise ValueError(f"unknown model config keys {sorted(unknown)}; expected {sorted(known)}")
-        return cls(**d)
+        return cls(**(LEGACY_DEFAULTS | d))

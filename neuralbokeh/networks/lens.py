@@ -24,8 +24,10 @@ The skeleton of the paper, given what a lens blur is made of:
    aberration.
 3. *C1: the multiplicative CoC gate.* The signed CoC ``c`` (px) of each pixel is split into
    bands by hat functions of ``|c|``: band 0 is ``|c| <= 1`` px (in focus: a point), band
-   ``n`` is centred at ``d_n = 1 + n step`` px, a lattice fixed by the training data (``step =
-   (max_coc_px - 1) / N`` for its largest CoC ``max_coc_px`` and N blocks, so ``d_n <= 2n + 1``). A frame
+   ``n`` is centred at ``w(d_n) = 1 + n step`` px, ``w(c) = c + a (1 - 1/c)`` (``a`` =
+   ``near_focus_px``, default 0: ``d_n = 1 + n step``), a lattice fixed by the training data
+   (``step = (w(max_coc_px) - 1) / N`` for its largest CoC and N blocks, so ``d_n <= 2n + 1``;
+   ``a > 0`` makes the bands denser near focus). A frame
    runs the bands up to the first whose centre reaches its own largest |CoC| (:meth:`LensBokeh.plan`, :mod:`neuralbokeh.core.bands`):
    a frame with a third of the range runs a third of the bands, one beyond the trained range
    runs more, with the pupil scaled to their diameters. Features of band ``n`` = (colour x gate, gate), for each side.
@@ -78,7 +80,7 @@ import torch.nn.functional as F
 
 from ..core import checks
 from ..core.apertures import Aperture, Disk, Gaussian, aperture_from_dict
-from ..core.bands import BandPlan, hermite_weights, lattice_step
+from ..core.bands import BandPlan, hermite_weights, lattice_coordinate, lattice_step
 from ..core.contract import Contract
 from ..core.tiling import TileLayout
 from ..ops.fftconv import next_fast_len
@@ -339,7 +341,7 @@ class LensBokeh(nn.Module):
     It renders any image size and any window of the sensor: the tile grid is laid over each
     frame, each tile's pupil is the lens-wide pupil plus a correction interpolated from a
     ``field_grid``^2 grid over the sensor at the tile's position, and the CoC bands lie on a
-    fixed lattice ``d_n = 1 + n step`` (px; ``step`` from the training data's CoC range and N),
+    fixed lattice ``w(d_n) = 1 + n step`` (px; ``step`` from the training data's CoC range and N),
     of which a frame uses the bands its own largest |CoC| reaches, beyond the trained range too
     (the pupil is scaled: it is defined in aperture radii).
     """
@@ -351,11 +353,14 @@ class LensBokeh(nn.Module):
         cfg = config
         c_train = max(float(contract.coc_scale_px), 1.0)
         # the band lattice: N bands over the training range (d_N = c_train, d_n <= 2n + 1)
-        self.step_px = lattice_step(c_train, cfg.blocks)
-        if self.step_px > 2.0 + 1e-9:  # d_n = 1 + n step would outgrow block n's 2n + 1 px kernel
-            raise ValueError(f"a CoC scale of {c_train:g} px over {cfg.blocks} blocks puts band n at 1 + {self.step_px:.3g} n px, "
-                             f"wider than its 2n + 1 px kernel: use at least {math.ceil((c_train - 1.0) / 2.0)} blocks "
-                             f"(model.blocks = 'auto') or a CoC scale up to {1.0 + 2.0 * cfg.blocks:g} px")
+        self.near_px = float(cfg.near_focus_px)
+        self.step_px = lattice_step(c_train, cfg.blocks, self.near_px)
+        if self.step_px > 2.0 + 1e-9:  # d_n <= 1 + n step would outgrow block n's 2n + 1 px kernel
+            need = math.ceil(lattice_coordinate(c_train, self.near_px) / 2.0 - 1e-9)
+            raise ValueError(f"a CoC scale of {c_train:g} px over {cfg.blocks} blocks puts the bands {self.step_px:.3g} px of lattice "
+                             f"coordinate apart, wider than block n's 2n + 1 px kernel allows: use at least {need} blocks "
+                             f"(model.blocks = 'auto'), a smaller CoC scale"
+                             + (" or model.near_focus_px = 0 (a lattice uniform in the CoC)" if self.near_px else ""))
         prior = prior_transmission(_prior_shape(cfg, contract.aperture), cfg.pupil_size)
         logits = np.log(np.maximum(prior, PUPIL_FLOOR))
         # log-transmissions (side [behind, in front], channel, P, P): one lens-wide pupil, plus a
@@ -392,7 +397,7 @@ class LensBokeh(nn.Module):
     def plan(self, coc_px: float) -> BandPlan:
         """The plan of a frame whose largest |CoC| is ``coc_px`` (px): its bands on the lattice
         and the reach of its fill (:meth:`~neuralbokeh.core.bands.BandPlan.for_frame`)."""
-        return BandPlan.for_frame(coc_px, self.step_px, float(self.contract.coc_scale_px))
+        return BandPlan.for_frame(coc_px, self.step_px, float(self.contract.coc_scale_px), self.near_px)
 
     def source_masks(self, layout: TileLayout, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
         """``(tiles, 1, win, win)``: 1 on the pixels whose light a tile scatters."""
@@ -635,7 +640,7 @@ class LensBokeh(nn.Module):
                 # each distinct pupil's kernels once per band, both sides (shared: one set for every image)
                 if kern is None:
                     kern = self.kernels(n, pupils, float(diameters[n]))
-                    slope = self.kernel_slopes(n, pupils, float(diameters[n]), plan.step_px) if hermite else None
+                    slope = self.kernel_slopes(n, pupils, float(diameters[n]), plan.band_step_px(n)) if hermite else None
                 which = idx % n_t if shared else idx
                 w = gs.reshape(b * n_t, 1, win, win)[idx]
                 colour = rgb_flat[idx]

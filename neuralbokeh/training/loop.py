@@ -44,7 +44,7 @@ from ..core.normalization import Normalization
 from ..core.optics import SensorWindow
 from ..data.check import require_sound
 from ..data.dataset import FocalStackDataset, cut_sides, random_crop_place
-from ..networks import build_model
+from ..networks import ModelConfig, build_model
 from ..render import scatter_defocus
 from .config import TrainConfig
 
@@ -372,7 +372,7 @@ class _Run:
         run = cls(cfg, proc)
         if resume:
             ck = load_checkpoint(resume, map_location=proc.device)
-            if ck["model_config"] != run.mcfg.to_dict():
+            if ModelConfig.from_dict(ck["model_config"]).to_dict() != run.mcfg.to_dict():
                 raise ValueError(f"checkpoint {resume} is for model {ck['model_config']}, this config builds "
                                  f"{run.mcfg.to_dict()}")
             run.model.load_state_dict(ck["model_state"])
