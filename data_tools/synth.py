@@ -29,8 +29,9 @@ from neuralbokeh import __version__
 from neuralbokeh.core.apertures import ApertureModel, parse_aperture
 from neuralbokeh.core.cli import HelpFormatter, run_cli
 from neuralbokeh.core.io import read_image
-from neuralbokeh.core.optics import ThinLens, blocks_for_coc, focus_sweep_m
+from neuralbokeh.core.optics import ThinLens, focus_sweep_m
 from neuralbokeh.data.dataset import FocalStackDataset, read_scene_meta, write_scene
+from neuralbokeh.networks import ModelConfig
 from neuralbokeh.render import scatter_layers
 
 from .procedural import SceneParams, composite_sharp, make_layers
@@ -176,7 +177,7 @@ def main(argv: list[str] | None = None) -> int:
     elapsed = time.perf_counter() - t0
     written = [r for r in results if not r["skipped"]]
     ds = FocalStackDataset(args.out)
-    n_blocks = blocks_for_coc(ds.max_coc_px)
+    n_blocks = ModelConfig().resolved(ds.max_coc_px).blocks  # the default network's: the near-focus lattice
     print(f"dataset      {args.out.resolve()}")
     print(f"scenes       {len(ds.scenes)} in the folder ({len(written)} written now, {len(results) - len(written)} already there)")
     print(f"samples      {len(ds)} (scene, focus) pairs; image {args.size[0]}x{args.size[1]} px")
