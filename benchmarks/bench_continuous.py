@@ -17,7 +17,9 @@ For each case the script renders Mitsuba's thin-lens defocus (the truth; the AIF
 depth once), then feeds the AIF + CoC to identity, the CoC Gaussian, the naive gather and the
 scatter with the true aperture, and prints linear / sRGB PSNR and seconds. ``--network`` adds
 the lens network, untrained, given the scene's own lens, with the hidden-background fill and the
-far-light fill (at its starting gain).
+far-light fill (at its starting gain); ``--network-options K=V[,K=V] ...`` adds a row per spec
+with those ``ModelConfig`` fields changed. ``--save DIR`` keeps the AIF, the depth and the truths;
+``--load DIR`` scores against them without Mitsuba (seconds instead of minutes).
 
 Overscan (``--overscan M``, default 24 px, half the largest CoC): the truth, the AIF and the depth
 are rendered M px wider on every side (the same scene, camera and pixel pitch) and every method
@@ -96,7 +98,8 @@ def network_rows(aperture: ApertureModel, lens: ThinLens, size: tuple[int, int],
     configs = {f"network, fill {fill}": {"fill": fill} for fill in ("background", "far_light")}
     configs |= {f"network, {spec}": dict(parse_option(o) for o in spec.split(",")) for spec in variants}
     for name, options in configs.items():
-        cfg = ModelConfig(tile=2 * overlap, overlap=overlap, pupil_init="aperture", vignetting=False, **options).resolved(max_coc_px)
+        base = {"tile": 2 * overlap, "overlap": overlap, "pupil_init": "aperture", "vignetting": False}
+        cfg = ModelConfig(**base | options).resolved(max_coc_px)
         model = build_model(cfg, contract).eval().double()
 
         def run(aif: np.ndarray, coc: np.ndarray, model=model) -> np.ndarray:

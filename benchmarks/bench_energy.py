@@ -19,6 +19,9 @@ with the same aperture:
   before 2026-12-03 (occluders only at 4 px steps within the blur's reach, the pull-push of the
   light itself, each visible pixel its own sharp value).
 
+``--network-options K=V[,K=V] ...`` adds a network row per spec with those ``ModelConfig`` fields
+changed (e.g. ``near_focus_px=0``: the band lattice uniform in the CoC).
+
 Printed per row: held-out linear PSNR (both images divided by the truth's peak, the
 evaluation's ``psnr_linear``), and around the highlights (AIF pixels brighter than 20x the
 frame's median, grown by the largest CoC radius) the ratio of the rendered to the true light:
@@ -86,7 +89,7 @@ class Patched:
 
 
 def _network(ds: FocalStackDataset, args: argparse.Namespace, **overrides: object) -> LensBokeh:
-    cfg = ModelConfig(tile=args.tile, overlap=args.overlap, pupil_init="aperture", **overrides).resolved(ds.max_coc_px)
+    cfg = ModelConfig(**{"tile": args.tile, "overlap": args.overlap, "pupil_init": "aperture"} | overrides).resolved(ds.max_coc_px)
     model = build_model(cfg, ds.contract()).eval()
     aperture = ds.contract().aperture
     with torch.no_grad():  # the data's cat-eye on a square frame: the corner (1, 1) is the lens model's field (1, 1) / sqrt 2

@@ -319,6 +319,25 @@ def test_a_checkpoint_from_before_the_near_focus_lattice_keeps_its_uniform_bands
     assert np.abs(uniform - _run_onnx(busy_onnx, x[:, :3].numpy(), x[:, 3:].numpy())).max() > 1e-3
 
 
+def test_a_margin_that_grows_with_the_band_exports_with_parity(busy_checkpoint, busy_onnx, tmp_path):
+    """``occlusion_margin_rel``: each band's buckets ramp over ``max(margin_px, rel d_n)``, a
+    constant of the band in the graph as in PyTorch; it changes the output."""
+    data = load_checkpoint(busy_checkpoint)
+    data["model_config"] = {**data["model_config"], "occlusion_margin_rel": 0.5}
+    ckpt = tmp_path / "rel.pt"
+    save_checkpoint(ckpt, {k: v for k, v in data.items() if k not in ("format", "format_version", "package_version")})
+    model, _ = load_model(ckpt)
+    d = model.plan(model.contract.max_coc_px).diameters
+    assert model.config.occlusion_margin(d[1]) == 2.0 and model.config.occlusion_margin(d[-1]) == pytest.approx(0.5 * d[-1])
+    report = export_checkpoint(ckpt, tmp_path / "rel.onnx", kernels="direct", threads=1)
+    assert max(report["parity"].values()) <= 1e-4, report["parity"]
+    x = calibration_inputs(*model.contract.size, count=2, seed=7)
+    out = _run_onnx(tmp_path / "rel.onnx", x[:, :3].numpy(), x[:, 3:].numpy())
+    with torch.no_grad():
+        assert np.abs(out - model(x).numpy()).max() < 1e-4
+    assert np.abs(out - _run_onnx(busy_onnx, x[:, :3].numpy(), x[:, 3:].numpy())).max() > 1e-3
+
+
 def test_an_export_may_choose_its_tiles_and_only_the_field_sampling_changes(busy_checkpoint, tmp_path):
     """Tile cores are an export setting: with one pupil over the whole sensor a file with larger
     tiles renders what the trained tiles render; with a field-dependent pupil it samples the field

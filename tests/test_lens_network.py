@@ -507,6 +507,8 @@ def test_a_coc_scale_the_blocks_cannot_cover_is_refused():
     assert ModelConfig(near_focus_px=4.0).resolved(13.0).blocks == 8
     with pytest.raises(ValueError, match=r"near_focus_px must be a finite number >= 0 px, got -1"):
         ModelConfig(near_focus_px=-1)
+    with pytest.raises(ValueError, match=r"occlusion_margin_rel must be a finite number >= 0, got nan"):
+        ModelConfig(occlusion_margin_rel=float("nan"))
 
 
 def test_a_saturated_surface_lets_no_light_from_behind_through_whatever_the_rounding():

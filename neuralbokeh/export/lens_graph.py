@@ -345,7 +345,7 @@ def _tile(b: GraphBuilder, k: int, window: str, kernels: Mapping[int, np.ndarray
                 used = g.op("Gather", g.op("Gather", flags, g.c(f"n{n}_row", n - 1, np.int64)), g.c(f"side{side}", side, np.int64))
                 band_flow = None if moved is None else (moved[side], flow[1][n][side])
                 then = _band(g.b, k, n, side, pos, mask, src_mask, rgb, c, kernels[n][side], band_flow, scales.get(n, 1), win,
-                             sign * float(diameters[n]), float(cfg.occlusion_margin_px), fp16, rows,
+                             sign * float(diameters[n]), cfg.occlusion_margin(diameters[n]), fp16, rows,
                              None if slopes is None else slopes[n][side])
                 skip = Nodes(GraphBuilder(g.b.count), f"t{k}.n{n}s{side}.skip")
                 empty = skip.op("Slice", base, skip.c("s0", [0], np.int64), skip.c("s0", [0], np.int64), skip.c("ax0", [0], np.int64))

@@ -59,6 +59,10 @@ class ModelConfig:
             it leaves.
         occlusion_margin_px: CoC difference (px) over which light changes from "same surface"
             to "in front of / behind" the receiving pixel (lens), > 0.
+        occlusion_margin_rel: the margin grows with the band's diameter ``d``: ``max(
+            occlusion_margin_px, occlusion_margin_rel * d)`` (lens, >= 0; 0: fixed). A sloped
+            surface at a large CoC spans several px of CoC across a blur's reach; a fixed 2 px
+            margin makes its nearer part occlude its farther part.
         fill: what the lens architecture puts where its coverage falls short (what a blurred
             foreground uncovers): ``"background"`` (the visible background around the occluder,
             as the reference renderer's default), ``"normalize"`` (divide by the coverage) or
@@ -74,7 +78,7 @@ class ModelConfig:
             where a blend of a point and a 3 px disk is far from a highlight's 1.5 px disk;
             ``blocks = "auto"`` then adds about ``a / 2`` bands. 0: uniform in |c|.
         (``features``, ``head`` and the FFT thresholds: paper only; ``pupil_*``,
-        ``field_grid``, ``vignetting``, ``occlusion_margin_px``, ``fill``, ``band_blend``,
+        ``field_grid``, ``vignetting``, ``occlusion_margin_*``, ``fill``, ``band_blend``,
         ``near_focus_px``: lens only; the rest: both.)
     """
 
@@ -93,6 +97,7 @@ class ModelConfig:
     field_grid: int = 5
     vignetting: bool = True
     occlusion_margin_px: float = 2.0
+    occlusion_margin_rel: float = 0.0
     fill: str = "background"
     band_blend: str = "hat"
     near_focus_px: float = 4.0
@@ -115,6 +120,9 @@ class ModelConfig:
         a = self.near_focus_px
         if isinstance(a, bool) or not (isinstance(a, (int, float)) and math.isfinite(a) and a >= 0):
             raise ValueError(f"model.near_focus_px must be a finite number >= 0 px, got {a!r}")
+        r = self.occlusion_margin_rel
+        if isinstance(r, bool) or not (isinstance(r, (int, float)) and math.isfinite(r) and r >= 0):
+            raise ValueError(f"model.occlusion_margin_rel must be a finite number >= 0, got {r!r}")
         m = self.occlusion_margin_px
         if not (isinstance(m, (int, float)) and math.isfinite(m) and m > 0):
             raise ValueError(f"model.occlusion_margin_px must be a finite number > 0 px, got {m!r}")
@@ -147,6 +155,10 @@ class ModelConfig:
     def layout(self, height: int, width: int) -> TileLayout:
         """The tile grid over an ``height x width`` image."""
         return TileLayout.for_image(height, width, self.tile, self.overlap, self.tiling)
+
+    def occlusion_margin(self, diameter_px: float) -> float:
+        """The buckets' margin (px of CoC) for light of a band of diameter ``diameter_px``."""
+        return max(float(self.occlusion_margin_px), float(self.occlusion_margin_rel) * float(diameter_px))
 
     def kernel_size(self, n: int) -> int:
         """Kernel size of residual block n (1-based)."""

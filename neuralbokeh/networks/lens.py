@@ -43,7 +43,7 @@ The skeleton of the paper, given what a lens blur is made of:
    pixel of a tile uses is not computed at all (exact: its gate is zero there).
 5. *Occlusion* (near over far, without the layered scatter's trap on continuous surfaces).
    Light arriving at pixel ``p`` is sorted by its band's CoC relative to ``p``'s own CoC into
-   *near*, *same surface* and *far* buckets (soft ramps ``occlusion_margin_px`` wide). Inside a
+   *near*, *same surface* and *far* buckets (soft ramps ``ModelConfig.occlusion_margin(d_n)`` wide). Inside a
    bucket light is summed, so neighbouring bands of one sloped surface never occlude each
    other; across buckets it is composited near over same over far with sum-to-saturation
    (light-field patent). Coverage that stays below 1 (where a blurred foreground uncovers what
@@ -651,7 +651,7 @@ class LensBokeh(nn.Module):
                     ws = (g_slope * side_mask).reshape(b * n_t, 1, win, win)[idx]
                     feats = torch.cat([feats, colour * ws, ws], dim=1)  # (M, 8, win, win)
                 out = _scatter(feats, kern[:, side], which, scales.get(n, 1), None if slope is None else slope[:, side])
-                bw = bucket_weights(sign * float(diameters[n]), coc_flat[idx], cfg.occlusion_margin_px)
+                bw = bucket_weights(sign * float(diameters[n]), coc_flat[idx], cfg.occlusion_margin(diameters[n]))
                 contrib = bw.permute(1, 0, 2, 3).unsqueeze(2) * out.unsqueeze(1)  # (M, 3, 6, win, win)
                 # one band at a time: memory stays O(image), not O(image x bands); in place, so no
                 # band copies the whole accumulator
