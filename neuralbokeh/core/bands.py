@@ -50,12 +50,16 @@ def lattice_step(c_train_px: float, blocks: int, near_px: float = 0.0) -> float:
     return lattice_coordinate(float(c_train_px), near_px) / blocks if blocks > 0 else 2.0
 
 
+def lattice_blocks(max_coc_px: float, near_px: float) -> int:
+    """The fewest bands at most 2 px of lattice coordinate apart whose last centre reaches
+    ``max_coc_px``: then ``d_n <= 1 + 2n``, and block n's 2n + 1 px kernel holds band n."""
+    return max(0, math.ceil(lattice_coordinate(float(max_coc_px), near_px) / 2.0 - 1e-9))
+
+
 def band_diameters(max_coc_px: float, blocks: int, near_px: float = 0.0) -> np.ndarray:
     """Centres ``d_0 = 0``, ``d_n`` (px) of the CoC bands, ``(N + 1,)``, the last at ``max_coc_px``."""
     step = lattice_coordinate(float(max_coc_px), near_px) / max(blocks, 1)
-    d = lattice_diameter(np.arange(blocks + 1) * step, near_px)
-    d[0] = 0.0
-    return d
+    return BandPlan(step, blocks, 0, near_px).diameters
 
 
 class BandPlan(NamedTuple):
@@ -92,7 +96,8 @@ class BandPlan(NamedTuple):
     def band_step_px(self, n: int) -> float:
         """``d d / d pos`` (px of CoC per band) at band ``n``'s centre: the lattice step in |c|
         there, which scales a kernel's slope in the diameter to one per band (Hermite blend)."""
-        return self.step_px / (1.0 + self.near_px / max(float(self.diameters[n]), POINT_PX) ** 2)
+        d = float(lattice_diameter(n * self.step_px, self.near_px))
+        return self.step_px / (1.0 + self.near_px / max(d, POINT_PX) ** 2)
 
     def position(self, coc_px: Any) -> Any:
         """Continuous band index in ``[0, N]`` of each pixel's signed CoC ``coc_px`` (px; a numpy

@@ -136,14 +136,14 @@ class ModelConfig:
         """This config with ``blocks = "auto"`` replaced by N for the data's largest |CoC| (px):
         the fewest bands at most 2 px of lattice coordinate apart (``2N + 1 >= max CoC`` on a
         lattice uniform in |c|, ``optics.blocks_for_coc``)."""
-        from ..core.bands import lattice_coordinate
+        from ..core.bands import lattice_blocks
         from ..core.optics import blocks_for_coc
 
         if self.blocks != "auto":
             return self
-        n = blocks_for_coc(max_coc_px)
-        if self.architecture == "lens" and self.near_focus_px > 0:
-            n = max(n, math.ceil(lattice_coordinate(float(max_coc_px), float(self.near_focus_px)) / 2.0 - 1e-9))
+        n = blocks_for_coc(max_coc_px)  # (which also refuses a negative or non-finite CoC)
+        if self.architecture == "lens":
+            n = lattice_blocks(max_coc_px, float(self.near_focus_px))
         return replace(self, blocks=n)
 
     def check_resolved(self) -> None:

@@ -25,7 +25,7 @@ The skeleton of the paper, given what a lens blur is made of:
 3. *C1: the multiplicative CoC gate.* The signed CoC ``c`` (px) of each pixel is split into
    bands by hat functions of ``|c|``: band 0 is ``|c| <= 1`` px (in focus: a point), band
    ``n`` is centred at ``w(d_n) = 1 + n step`` px, ``w(c) = c + a (1 - 1/c)`` (``a`` =
-   ``near_focus_px``, default 0: ``d_n = 1 + n step``), a lattice fixed by the training data
+   ``near_focus_px``, default 4; 0: ``d_n = 1 + n step``), a lattice fixed by the training data
    (``step = (w(max_coc_px) - 1) / N`` for its largest CoC and N blocks, so ``d_n <= 2n + 1``;
    ``a > 0`` makes the bands denser near focus). A frame
    runs the bands up to the first whose centre reaches its own largest |CoC| (:meth:`LensBokeh.plan`, :mod:`neuralbokeh.core.bands`):
@@ -80,7 +80,7 @@ import torch.nn.functional as F
 
 from ..core import checks
 from ..core.apertures import Aperture, Disk, Gaussian, aperture_from_dict
-from ..core.bands import BandPlan, hermite_weights, lattice_coordinate, lattice_step
+from ..core.bands import BandPlan, hermite_weights, lattice_blocks, lattice_step
 from ..core.contract import Contract
 from ..core.tiling import TileLayout
 from ..ops.fftconv import next_fast_len
@@ -356,7 +356,7 @@ class LensBokeh(nn.Module):
         self.near_px = float(cfg.near_focus_px)
         self.step_px = lattice_step(c_train, cfg.blocks, self.near_px)
         if self.step_px > 2.0 + 1e-9:  # d_n <= 1 + n step would outgrow block n's 2n + 1 px kernel
-            need = math.ceil(lattice_coordinate(c_train, self.near_px) / 2.0 - 1e-9)
+            need = lattice_blocks(c_train, self.near_px)
             raise ValueError(f"a CoC scale of {c_train:g} px over {cfg.blocks} blocks puts the bands {self.step_px:.3g} px of lattice "
                              f"coordinate apart, wider than block n's 2n + 1 px kernel allows: use at least {need} blocks "
                              f"(model.blocks = 'auto'), a smaller CoC scale"
