@@ -1,6 +1,7 @@
 """export.py and the ONNX graph: parity with PyTorch, metadata, low-rank kernels, failure modes."""
 
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -319,20 +320,29 @@ def test_a_checkpoint_from_before_the_near_focus_lattice_keeps_its_uniform_bands
     assert np.abs(uniform - _run_onnx(busy_onnx, x[:, :3].numpy(), x[:, 3:].numpy())).max() > 1e-3
 
 
-def test_a_margin_that_grows_with_the_band_exports_with_parity(busy_checkpoint, busy_onnx, tmp_path):
+@pytest.mark.parametrize("option", ["margin_rel", "pixel_blur"])
+def test_a_margin_that_grows_with_the_band_and_a_pixel_blur_export_with_parity(busy_checkpoint, busy_onnx, tmp_path, option):
     """``occlusion_margin_rel``: each band's buckets ramp over ``max(margin_px, rel d_n)``, a
-    constant of the band in the graph as in PyTorch; it changes the output."""
+    constant of the band in the graph as in PyTorch. ``pixel_blur``: the kernels the graph holds
+    are the module's, blurred. Either changes the output."""
     data = load_checkpoint(busy_checkpoint)
-    data["model_config"] = {**data["model_config"], "occlusion_margin_rel": 0.5}
-    ckpt = tmp_path / "rel.pt"
+    if option == "margin_rel":
+        data["model_config"] = {**data["model_config"], "occlusion_margin_rel": 0.5}
+    else:
+        data["model_config"] = {**data["model_config"], "pixel_blur": True}
+        data["model_state"] = {**data["model_state"], "pixel_blur": torch.tensor([math.atanh(0.3 / 0.5), 0.5])}
+    ckpt = tmp_path / f"{option}.pt"
     save_checkpoint(ckpt, {k: v for k, v in data.items() if k not in ("format", "format_version", "package_version")})
     model, _ = load_model(ckpt)
     d = model.plan(model.contract.max_coc_px).diameters
-    assert model.config.occlusion_margin(d[1]) == 2.0 and model.config.occlusion_margin(d[-1]) == pytest.approx(0.5 * d[-1])
-    report = export_checkpoint(ckpt, tmp_path / "rel.onnx", kernels="direct", threads=1)
+    if option == "margin_rel":
+        assert model.config.occlusion_margin(d[1]) == 2.0 and model.config.occlusion_margin(d[-1]) == pytest.approx(0.5 * d[-1])
+    else:
+        assert float(model.pixel_blur_px2(d[-1])) == pytest.approx(0.3 * (1.0 - math.exp(-d[-1] / math.exp(0.5))), rel=1e-5)
+    report = export_checkpoint(ckpt, tmp_path / f"{option}.onnx", kernels="direct", threads=1)
     assert max(report["parity"].values()) <= 1e-4, report["parity"]
     x = calibration_inputs(*model.contract.size, count=2, seed=7)
-    out = _run_onnx(tmp_path / "rel.onnx", x[:, :3].numpy(), x[:, 3:].numpy())
+    out = _run_onnx(tmp_path / f"{option}.onnx", x[:, :3].numpy(), x[:, 3:].numpy())
     with torch.no_grad():
         assert np.abs(out - model(x).numpy()).max() < 1e-4
     assert np.abs(out - _run_onnx(busy_onnx, x[:, :3].numpy(), x[:, 3:].numpy())).max() > 1e-3

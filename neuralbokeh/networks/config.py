@@ -18,9 +18,12 @@ ARCHITECTURES = ("lens", "paper")
 PUPIL_INITS = ("disk", "gaussian", "aperture")
 FILLS = ("background", "normalize", "far_light")
 BAND_BLENDS = ("hat", "hermite")
+# the bound of the pixel blur's variance (px^2 per axis): its 3-tap filter [v/2, 1 - v, v/2] stays
+# within a tent (v = 0.5) and a mild sharpening
+PIXEL_BLUR_MAX_PX2 = 0.5
 # what a checkpoint written before a key existed meant by leaving it out, where the default has
 # changed since: its network is rebuilt as it was trained
-LEGACY_DEFAULTS = {"near_focus_px": 0.0}
+LEGACY_DEFAULTS = {"near_focus_px": 0.0, "pixel_blur": False}
 KERNEL_SIZES = ("growing", "fixed3")
 TILINGS = ("overlap", "none", "no_overlap")
 HEADS = ("identity", "paper")
@@ -77,9 +80,16 @@ class ModelConfig:
             uniform in ``|c| + a (1 - 1 / |c|)``, so ``1 + a / |c|^2`` times denser near focus,
             where a blend of a point and a 3 px disk is far from a highlight's 1.5 px disk;
             ``blocks = "auto"`` then adds about ``a / 2`` bands. 0: uniform in |c|.
+        pixel_blur: learn a blur the frame's pixels add to every defocused kernel beyond the
+            pupil rasterised by area (lens): a per-axis variance ``v(d) = v_inf (1 - exp(-d /
+            d_v))`` px^2 at CoC ``d``, zero in focus, ``|v_inf| < 0.25`` (negative: sharper than
+            the area raster), ``d_v`` learned from 1 px. E.g. a refocused light field splats
+            each view bilinearly: a tent where the raster has a box (+1/12 px^2).
+        pixel_blur_px2: the starting ``v_inf`` (px^2, in (-0.5, 0.5); 0, the default: the area
+            raster exactly), with ``pixel_blur`` only.
         (``features``, ``head`` and the FFT thresholds: paper only; ``pupil_*``,
         ``field_grid``, ``vignetting``, ``occlusion_margin_*``, ``fill``, ``band_blend``,
-        ``near_focus_px``: lens only; the rest: both.)
+        ``near_focus_px``, ``pixel_blur*``: lens only; the rest: both.)
     """
 
     architecture: str = "lens"
@@ -101,6 +111,8 @@ class ModelConfig:
     fill: str = "background"
     band_blend: str = "hat"
     near_focus_px: float = 4.0
+    pixel_blur: bool = True
+    pixel_blur_px2: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("features", "tile", "fft_min_kernel", "fft_min_kernel_train"):
@@ -120,6 +132,13 @@ class ModelConfig:
         a = self.near_focus_px
         if isinstance(a, bool) or not (isinstance(a, (int, float)) and math.isfinite(a) and a >= 0):
             raise ValueError(f"model.near_focus_px must be a finite number >= 0 px, got {a!r}")
+        if not isinstance(self.pixel_blur, bool):
+            raise ValueError(f"model.pixel_blur must be true or false, got {self.pixel_blur!r}")
+        v = self.pixel_blur_px2
+        if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v) and abs(v) < PIXEL_BLUR_MAX_PX2):
+            raise ValueError(f"model.pixel_blur_px2 must be a number in (-{PIXEL_BLUR_MAX_PX2}, {PIXEL_BLUR_MAX_PX2}) px^2, got {v!r}")
+        if v and not self.pixel_blur:
+            raise ValueError(f"model.pixel_blur_px2 = {v!r} starts a learned pixel blur: set model.pixel_blur = true, or leave it 0")
         r = self.occlusion_margin_rel
         if isinstance(r, bool) or not (isinstance(r, (int, float)) and math.isfinite(r) and r >= 0):
             raise ValueError(f"model.occlusion_margin_rel must be a finite number >= 0, got {r!r}")

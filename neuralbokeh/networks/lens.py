@@ -38,9 +38,12 @@ The skeleton of the paper, given what a lens blur is made of:
 4. *Residual blocks R_1..R_N.* Block ``n`` scatters its band with per-channel kernels of size
    ``2n + 1`` (the paper's growing kernels, up to the largest CoC): the tile's pupil rasterised
    (anti-aliased, normalised to sum 1) at diameter ``d_n`` x the channel scale, point-reflected
-   in front of the focus plane. It adds colour and coverage to the residual stream of
-   accumulators, in the bucket of each receiving pixel it lands on (below). A band that no
-   pixel of a tile uses is not computed at all (exact: its gate is zero there).
+   in front of the focus plane; with ``pixel_blur`` also filtered by a learned 3-tap blur whose
+   variance (px^2) grows from 0 in focus to a plateau, what the frame's pixels add beyond the
+   area raster (e.g. a light-field refocus's bilinear shifts). It adds colour and coverage to
+   the residual stream of accumulators, in the bucket of each receiving pixel it lands on
+   (below). A band that no pixel of a tile uses is not computed at all (exact: its gate is
+   zero there).
 5. *Occlusion* (near over far, without the layered scatter's trap on continuous surfaces).
    Light arriving at pixel ``p`` is sorted by its band's CoC relative to ``p``'s own CoC into
    *near*, *same surface* and *far* buckets (soft ramps ``ModelConfig.occlusion_margin(d_n)`` wide). Inside a
@@ -86,7 +89,7 @@ from ..core.tiling import TileLayout
 from ..ops.fftconv import next_fast_len
 from ..ops.holes import hidden_background
 from ..ops.tiles import overlap_add, tile
-from .config import ModelConfig
+from .config import PIXEL_BLUR_MAX_PX2, ModelConfig
 
 log = logging.getLogger(__name__)
 
@@ -204,6 +207,15 @@ def raster_weights(k: int, ss: int, radius_px: torch.Tensor, size: int, dtype: t
     at = (pos[None, :] / radius_px.to(dtype)[:, None] / PUPIL_EXTENT + 1.0) * (0.5 * (size - 1))  # (C, k ss) in samples
     hat = (1.0 - (at[..., None] - torch.arange(size, dtype=dtype, device=device)).abs()).clamp_min(0.0)  # (C, k ss, size)
     return hat.unflatten(1, (k, ss)).mean(dim=2)
+
+
+def pixel_blur_matrix(k: int, variance_px2: torch.Tensor) -> torch.Tensor:
+    """``(k, k)``: the 3-tap filter ``[v / 2, 1 - v, v / 2]`` (variance ``v`` px^2, a scalar
+    tensor; negative sharpens) along one kernel axis, cut at the kernel's edge (the kernel is
+    normalised afterwards)."""
+    eye = torch.eye(k, dtype=variance_px2.dtype, device=variance_px2.device)
+    side = torch.diag(torch.ones(k - 1, dtype=variance_px2.dtype, device=variance_px2.device), 1)
+    return eye * (1.0 - variance_px2) + (side + side.T) * (0.5 * variance_px2)
 
 
 def prior_transmission(shape: Aperture, size: int) -> np.ndarray:
@@ -378,6 +390,8 @@ class LensBokeh(nn.Module):
         # how much of a hole the far light fills, in units of its own coverage: softplus of this
         # (1 at the start), never stuck at a bound as a clamped gain would be once below it
         self.fill_gain = nn.Parameter(torch.tensor([math.log(math.expm1(1.0))])) if cfg.fill == "far_light" else None
+        # (atanh of v_inf / its bound, log d_v / 1 px): the area raster exactly at v_inf = 0, with a gradient there
+        self.pixel_blur = nn.Parameter(torch.tensor([math.atanh(cfg.pixel_blur_px2 / PIXEL_BLUR_MAX_PX2), 0.0])) if cfg.pixel_blur else None
         self._masks: dict[tuple[int, ...], torch.Tensor] = {}
         reach = overlap_for(c_train)
         if cfg.tiling == "overlap" and cfg.overlap < reach:
@@ -540,16 +554,30 @@ class LensBokeh(nn.Module):
         Kernel pixel ``(a, b)`` is the mean of the bilinearly interpolated transmission over
         ``ss x ss`` points of its footprint (:func:`supersampling`). Both the sampling and the
         interpolation are separable, so the kernel is ``W T W^T`` with ``W`` ``(k, P)`` the
-        row weights (:func:`raster_weights`): two small matrix products per pupil. ``ss``: the
+        row weights (:func:`raster_weights`): two small matrix products per pupil; with
+        ``model.pixel_blur`` ``W`` is first filtered by :func:`pixel_blur_matrix`. ``ss``: the
         supersampling (default: :func:`supersampling`'s for ``diameter``)."""
         k = self.kernel_size(n)
         scale = torch.exp(self.log_channel_scale)  # (3,)
         ss = self._supersampling(diameter) if ss is None else ss
         w = raster_weights(k, ss, 0.5 * float(diameter) * scale, self.config.pupil_size, pupils.dtype, pupils.device)
+        blur = self.pixel_blur_px2(diameter)
+        if blur is not None:
+            w = pixel_blur_matrix(k, blur.to(w.dtype)) @ w
         kern = w[None, None] @ torch.exp(pupils) @ w.transpose(-1, -2)[None, None]  # (M, 2, 3, k, k)
+        if blur is not None:  # a sharpening blur (v < 0) dips below zero beside a rim; a PSF does not
+            kern = kern.clamp_min(0.0)
         kern = kern / kern.sum(dim=(-2, -1), keepdim=True).clamp_min(_EPS)
         # in front of the focus plane the aperture's image is inverted
         return torch.stack([kern[:, 0], kern[:, 1].flip(-2, -1)], dim=1)
+
+    def pixel_blur_px2(self, diameter: float) -> torch.Tensor | None:
+        """The learned pixel blur's variance (px^2 per axis, a scalar tensor) at CoC ``diameter``
+        (px): ``v_inf (1 - exp(-d / d_v))``; ``None`` without ``model.pixel_blur``."""
+        if self.pixel_blur is None:
+            return None
+        v_inf = PIXEL_BLUR_MAX_PX2 * torch.tanh(self.pixel_blur[0])
+        return v_inf * -torch.expm1(-float(diameter) / torch.exp(self.pixel_blur[1]))
 
     def _supersampling(self, diameter: float) -> int:
         """Supersamples per kernel pixel side at CoC ``diameter`` (px), for the smallest channel scale."""
