@@ -82,7 +82,7 @@ class ModelConfig:
             ``blocks = "auto"`` then adds about ``a / 2`` bands. 0: uniform in |c|.
         pixel_blur: learn a blur the frame's pixels add to every defocused kernel beyond the
             pupil rasterised by area (lens): a per-axis variance ``v(d) = v_inf (1 - exp(-d /
-            d_v))`` px^2 at CoC ``d``, zero in focus, ``|v_inf| < 0.25`` (negative: sharper than
+            d_v))`` px^2 at CoC ``d``, zero in focus, ``|v_inf| < 0.5`` (negative: sharper than
             the area raster), ``d_v`` learned from 1 px. E.g. a refocused light field splats
             each view bilinearly: a tent where the raster has a box (+1/12 px^2).
         pixel_blur_px2: the starting ``v_inf`` (px^2, in (-0.5, 0.5); 0, the default: the area
