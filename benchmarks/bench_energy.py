@@ -61,9 +61,18 @@ def fill_before(aif: torch.Tensor, coc: torch.Tensor, jump_px: float = 4.0, radi
     return holes.push_pull_fill(aif, keep)
 
 
-def composite_over(self: LensBokeh, acc: torch.Tensor, background: torch.Tensor | None = None) -> torch.Tensor:
+def estimate_before(aif: torch.Tensor, coc: torch.Tensor, jump_px: float = 4.0, radius_px: int | None = None,
+                    step_px: float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`fill_before` where the network reads ``ops.holes.hidden_estimate``, with no bound
+    on the surface fill (the AIF)."""
+    return fill_before(aif, coc, jump_px, radius_px), aif
+
+
+def composite_over(self: LensBokeh, acc: torch.Tensor, background: torch.Tensor | None = None,
+                   surface: object = None) -> torch.Tensor:
     """Near light over the rest (same + far, summed, at most one coverage), in proportion to the
-    near coverage, then the fill: the layered "over" in place of sum-to-saturation."""
+    near coverage, then the fill (``surface``, the surface fill's inputs, unused): the layered
+    "over" in place of sum-to-saturation."""
     color, cover = acc[:, :, :3], acc[:, :, 3:].clamp_min(0.0)
     near = cover[:, 0].clamp(max=1.0)
     rest_c, rest_a = color[:, 1] + color[:, 2], cover[:, 1] + cover[:, 2]
@@ -121,7 +130,8 @@ def _rows(ds: FocalStackDataset, args: argparse.Namespace) -> dict[str, Callable
                 return scatter_defocus(lin, coc, exact[ds.items[i][0]], **kw)
         return run
 
-    old_fill = tuple((sys.modules[f.__module__], "hidden_background", fill_before) for f in (scatter_defocus, LensBokeh))
+    old_fill = ((sys.modules[scatter_defocus.__module__], "hidden_background", fill_before),
+                (sys.modules[LensBokeh.__module__], "hidden_estimate", estimate_before))
     return {
         "network": net("default"),
         "network, margin 1 px": net("margin 1"),

@@ -113,8 +113,8 @@ class TracedPlate(nn.Module):
         hp, wp = lay.padded_size
         cols = acc.reshape(n_t, 18 * win * win).transpose(0, 1)[None]
         canvas = F.fold(cols, (hp, wp), win, stride=lay.core)[:, :, lay.overlap : lay.overlap + h, lay.overlap : lay.overlap + w]
-        background = self.hidden(x) if self.cond else m.hidden(x, float(m.contract.max_coc_px))
-        out = m.composite(canvas.view(1, 3, 6, h, w), background).clamp_min(0.0)
+        background, hides, brightest = self.hidden(x) if self.cond else m.hidden(x, float(m.contract.max_coc_px))
+        out = m.composite(canvas.view(1, 3, 6, h, w), background, (hides, brightest)).clamp_min(0.0)
         if not self.cond:
             return m.contract.normalization.encode(out)
         norm = m.contract.normalization  # Normalization.encode without its range check (data-dependent)
@@ -126,14 +126,16 @@ class TracedPlate(nn.Module):
         norm = self.model.contract.normalization
         return norm.scale * (1.0 + n) / (1.0 - n) - norm.offset if self.cond else norm.decode(n)
 
-    def hidden(self, x: torch.Tensor) -> torch.Tensor:
+    def hidden(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """``LensBokeh.hidden`` with ``push_pull_fill``'s early return ("no weight at all", a
         data-dependent branch) left out."""
         m, (h, w) = self.model, x.shape[-2:]
-        keep = (~occluders(x[:, 3:] * float(m.contract.coc_scale_px), self.plan.fill_radius_px)).to(x.dtype)
+        hides = occluders(x[:, 3:] * float(m.contract.coc_scale_px), self.plan.fill_radius_px)
+        keep = (~hides).to(x.dtype)
         side = 1 << pyramid_levels(h, w)
         pad = (0, side - w, 0, side - h)
-        return _pull_push(F.pad(self.decode(x[:, :3]), pad), F.pad(keep, pad))[..., :h, :w]
+        background = _pull_push(F.pad(self.decode(x[:, :3]), pad), F.pad(keep, pad))[..., :h, :w]
+        return background, hides, background  # the surface fill bounded by the estimate itself: the same ops, close enough to time
 
 
 def _time(fn, repeats: int) -> tuple[float, np.ndarray]:

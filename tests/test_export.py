@@ -19,7 +19,7 @@ from neuralbokeh.export.exporter import calibration_inputs, export_checkpoint, p
 from neuralbokeh.export.graph import GraphBuilder
 from neuralbokeh.export.lens_graph import LENS_DEFAULT_KERNELS, Nodes, conv_rows, hidden_background_graph, window_max
 from neuralbokeh.export.lowrank import cheaper_ranks, factorize, parse_kernels, reconstruct, relative_error
-from neuralbokeh.ops.holes import hidden_background
+from neuralbokeh.ops.holes import hidden_background, hidden_pixels
 from neuralbokeh.runtime.onnx_model import make_session
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -189,17 +189,20 @@ def test_graph_fill_is_the_hidden_background(h, w, c_max):
     contract = Contract(h, w, norm, c_max, c_max)
     g = Nodes(GraphBuilder(), "g")
     radius = int(np.ceil(c_max / 2))
-    out = hidden_background_graph(g, "x", contract, radius)
+    out, keep, _ = hidden_background_graph(g, "x", contract, radius)
     graph = helper.make_graph(g.nodes, "fill", [helper.make_tensor_value_info("x", TensorProto.FLOAT, [2, 4, h, w])],
-                              [helper.make_tensor_value_info(out, TensorProto.FLOAT, None)], g.b.initializers)
+                              [helper.make_tensor_value_info(o, TensorProto.FLOAT, None) for o in (out, keep)], g.b.initializers)
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)])
     model.ir_version = 9
     x = torch.cat([norm.encode(rgb), coc / c_max], 1).float().numpy()
-    got = make_session(model.SerializeToString(), threads=1).run(None, {"x": x})[0]
-    want = hidden_background(norm.decode(torch.from_numpy(x[:, :3]).double()), torch.from_numpy(x[:, 3:]).double() * c_max,
-                             radius_px=radius)
+    got, got_keep = make_session(model.SerializeToString(), threads=1).run(None, {"x": x})
+    coc_px = torch.from_numpy(x[:, 3:]).double() * c_max
+    want = hidden_background(norm.decode(torch.from_numpy(x[:, :3]).double()), coc_px, radius_px=radius)
     assert h * w == 1 or float((want - rgb).abs().max()) > 0.1  # the occluders were filled
     np.testing.assert_allclose(got, want.numpy(), rtol=1e-5, atol=1e-5 * float(rgb.max()))
+    hides = hidden_pixels(coc_px, radius).numpy()  # the surface fill's mask: the pixels that hide something
+    assert h * w == 1 or 0 < hides.sum() < hides.size
+    np.testing.assert_array_equal(got_keep, (~hides).astype(np.float32))
 
 
 @pytest.mark.parametrize("r, h, w", [(1, 6, 5), (3, 4, 9), (5, 17, 12), (21, 7, 50), (8, 3, 3)])
@@ -320,14 +323,18 @@ def test_a_checkpoint_from_before_the_near_focus_lattice_keeps_its_uniform_bands
     assert np.abs(uniform - _run_onnx(busy_onnx, x[:, :3].numpy(), x[:, 3:].numpy())).max() > 1e-3
 
 
-@pytest.mark.parametrize("option", ["margin_rel", "pixel_blur"])
+@pytest.mark.parametrize("option", ["margin_rel", "pixel_blur", "surface_fill"])
 def test_a_margin_that_grows_with_the_band_and_a_pixel_blur_export_with_parity(busy_checkpoint, busy_onnx, tmp_path, option):
     """``occlusion_margin_rel``: each band's buckets ramp over ``max(margin_px, rel d_n)``, a
     constant of the band in the graph as in PyTorch. ``pixel_blur``: the kernels the graph holds
-    are the module's, blurred. Either changes the output."""
+    are the module's, blurred. ``surface_fill``: its learned share, a constant of the graph.
+    Each changes the output."""
     data = load_checkpoint(busy_checkpoint)
     if option == "margin_rel":
         data["model_config"] = {**data["model_config"], "occlusion_margin_rel": 0.5}
+    elif option == "surface_fill":
+        assert data["model_config"]["surface_fill"] and "surface_fill" in data["model_state"]  # the default
+        data["model_state"] = {**data["model_state"], "surface_fill": torch.tensor([math.log(0.3 / 0.7)])}
     else:
         data["model_config"] = {**data["model_config"], "pixel_blur": True}
         data["model_state"] = {**data["model_state"], "pixel_blur": torch.tensor([math.atanh(0.3 / 0.5), 0.5])}
@@ -337,6 +344,8 @@ def test_a_margin_that_grows_with_the_band_and_a_pixel_blur_export_with_parity(b
     d = model.plan(model.contract.max_coc_px).diameters
     if option == "margin_rel":
         assert model.config.occlusion_margin(d[1]) == 2.0 and model.config.occlusion_margin(d[-1]) == pytest.approx(0.5 * d[-1])
+    elif option == "surface_fill":
+        assert float(model.surface_fill_share().detach()) == pytest.approx(0.3)
     else:
         assert float(model.pixel_blur_px2(d[-1])) == pytest.approx(0.3 * (1.0 - math.exp(-d[-1] / math.exp(0.5))), rel=1e-5)
     report = export_checkpoint(ckpt, tmp_path / f"{option}.onnx", kernels="direct", threads=1)

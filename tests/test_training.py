@@ -61,10 +61,10 @@ threads = 1
 def test_a_stored_model_config_reads_back_with_the_dataclass_defaults():
     cfg = ModelConfig(blocks=3, tile=16, overlap=4, pupil_init="disk")
     assert ModelConfig.from_dict(cfg.to_dict()) == cfg
-    assert ModelConfig.from_dict({"blocks": 3, "near_focus_px": 4.0, "pixel_blur": True}) == ModelConfig(blocks=3)  # left out: the default
+    assert ModelConfig.from_dict({"blocks": 3, "near_focus_px": 4.0, "pixel_blur": True, "surface_fill": True}) == ModelConfig(blocks=3)
     # keys whose defaults changed since: left out, they mean what they meant then (a uniform
-    # lattice, no pixel blur)
-    assert ModelConfig.from_dict({"blocks": 3}) == ModelConfig(blocks=3, near_focus_px=0.0, pixel_blur=False)
+    # lattice, no pixel blur, the sharp fill)
+    assert ModelConfig.from_dict({"blocks": 3}) == ModelConfig(blocks=3, near_focus_px=0.0, pixel_blur=False, surface_fill=False)
     with pytest.raises(ValueError, match=r"unknown model config keys \['kernels'\]"):
         ModelConfig.from_dict({"blocks": 3, "kernels": "growing"})
 

@@ -33,7 +33,8 @@ the PyTorch reference the export is checked against.
 
 The windows' accumulators ((near, same, far) x (RGB, coverage)) are stacked and overlap-added in one ``Col2Im`` (opset 18), then
 composited near over far with sum-to-saturation, the coverage left short filled with the
-hidden-background estimate (or normalised, for ``fill = "normalize"``) and encoded, as
+hidden-background estimate (a visible pixel's with its own surface's blurred light first, for
+``model.surface_fill``; or normalised, for ``fill = "normalize"``) and encoded, as
 ``LensBokeh.forward`` does. ``fp16`` runs the convolutions in float16 (inputs and kernels);
 gates, buckets and the composite stay float32.
 """
@@ -51,7 +52,7 @@ from ..core.bands import POINT_PX, BandPlan
 from ..core.contract import Contract
 from ..core.normalization import Normalization
 from ..core.tiling import pyramid_levels
-from ..networks.config import ModelConfig
+from ..networks.config import SILHOUETTE_PX, SURFACE_FILL_EPS, ModelConfig
 from ..ops.holes import JUMP_PX, LOG_OFFSET, OUTLIER_RATIO, STEP_PX
 from .graph import GraphBuilder, finish_model
 
@@ -114,8 +115,10 @@ def _branch(g: Nodes, result: str, name: str) -> onnx.GraphProto:
     return helper.make_graph(g.nodes, name, [], [_out(final)], g.b.initializers)
 
 
-def hidden_background_graph(top: Nodes, x: str, contract: Contract, r: int) -> str:
-    """``(B, 3, H, W)`` linear estimate of what foregrounds hide, as ``LensBokeh.hidden``:
+def hidden_background_graph(top: Nodes, x: str, contract: Contract, r: int) -> tuple[str, str | None, str]:
+    """``(B, 3, H, W)`` linear estimate of what foregrounds hide, ``(B, 1, H, W)`` float, 1 where
+    a pixel hides nothing (None: no pixel hides anything), and the estimate's bound on a visible
+    pixel's own colour (``ops.holes.hidden_estimate``), as ``LensBokeh.hidden``:
     occluders by a separable max over ``2r + 1`` px (``r``: the plan's ``fill_radius_px``), then
     (:func:`neuralbokeh.ops.holes.hidden_background`) the pull-push fill of the log of the light
     on the zero-padded ``2^L`` square (``AveragePool`` 2x2, ``Resize`` x2 half-pixel), whose
@@ -126,7 +129,7 @@ def hidden_background_graph(top: Nodes, x: str, contract: Contract, r: int) -> s
     coc = top.op("Mul", top.op("Slice", x, top.c("bg.s3", [3], np.int64), top.c("bg.s4", [4], np.int64), top.c("bg.ax1", [1], np.int64)),
                  top.c("bg.coc_scale", float(contract.coc_scale_px)))
     if r == 0:
-        return rgb  # nothing can hide anything: the fill is the AIF itself
+        return rgb, None, rgb  # nothing can hide anything: the fill is the AIF itself
     far = window_max(top, window_max(top, coc, r, 3, w), r, 2, h)  # rows, then columns (as ops.holes.occluders)
     hide = top.op("Less", coc, top.op("Sub", far, top.c("bg.jump", JUMP_PX)))
     near = window_max(top, window_max(top, coc, 1, 3, w), 1, 2, h)  # the 3 x 3 neighbours
@@ -137,7 +140,7 @@ def hidden_background_graph(top: Nodes, x: str, contract: Contract, r: int) -> s
     # its 2x2 means over the padding are 0 with weight 0, as padding level 1 with zeros gives
     side = 1 << pyramid_levels(h, w)
     if side < 2:
-        return rgb  # one pixel: nothing stands in front of anything
+        return rgb, keep, rgb  # one pixel: nothing stands in front of anything
     image, weight = _pull(top, log_rgb, keep, [0, 0, h % 2, w % 2])
     pads = top.c("bg.pads", [0, 0, 0, 0, 0, 0, side // 2 - (h + 1) // 2, side // 2 - (w + 1) // 2], np.int64)
     image, weight = top.op("Pad", image, pads), top.op("Pad", weight, pads)
@@ -161,8 +164,9 @@ def hidden_background_graph(top: Nodes, x: str, contract: Contract, r: int) -> s
     num = top.op("AveragePool", top.op("Mul", log_rgb, keep), kernel_shape=[3, 3], pads=[1, 1, 1, 1], count_include_pad=0)
     den = top.op("AveragePool", keep, kernel_shape=[3, 3], pads=[1, 1, 1, 1], count_include_pad=0)
     level = top.op("Exp", top.op("Div", num, top.op("Max", den, top.c("bg.tiny", 1e-12))))
-    own = top.op("Min", rgb, top.op("Sub", top.op("Mul", level, top.c("bg.outlier", OUTLIER_RATIO)), top.c("bg.log_offset", LOG_OFFSET)))
-    return top.op("Add", top.op("Mul", keep, own), top.op("Mul", top.op("Sub", top.c("bg.one", 1.0), keep), behind))
+    bound = top.op("Sub", top.op("Mul", level, top.c("bg.outlier", OUTLIER_RATIO)), top.c("bg.log_offset", LOG_OFFSET))
+    own = top.op("Min", rgb, bound)
+    return top.op("Add", top.op("Mul", keep, own), top.op("Mul", top.op("Sub", top.c("bg.one", 1.0), keep), behind)), keep, bound
 
 
 def window_max(g: Nodes, x: str, r: int, axis: int, size: int) -> str:
@@ -373,19 +377,43 @@ def _passthrough(b: GraphBuilder, k: int, window: str, src: np.ndarray, norm: No
     return _branch(g, g.op("Reshape", parts, g.c("flat", [1, -1], np.int64)), f"t{k}_pass")
 
 
+def _surface_filled(top: Nodes, background: str, keep: str | None, bound: str, colors: list[str], covers: list[str],
+                    share: float, size: tuple[int, int]) -> str:
+    """``LensBokeh.surface_filled``: where a pixel hides nothing (``keep`` 1) and none within
+    ``SILHOUETTE_PX`` does, ``share`` of its fill is the mean colour of the same and far buckets,
+    at most ``bound`` (the estimate's bound on the pixel's own colour), the ``background``
+    estimate the rest."""
+    b = top.b
+    if keep is not None:  # 1 - the max over the square of (1 - keep)
+        one = b.const("surface_one", 1.0)
+        beside = window_max(top, window_max(top, top.op("Sub", one, keep), SILHOUETTE_PX, 3, size[1]), SILHOUETTE_PX, 2, size[0])
+        keep = top.op("Sub", one, beside)
+    eps = b.const("surface_eps", SURFACE_FILL_EPS)
+    num = top.op("Add", top.op("Add", colors[1], colors[2]), top.op("Mul", background, eps))
+    own = top.op("Div", num, top.op("Add", top.op("Add", covers[1], covers[2]), eps))
+    own = top.op("Min", own, bound)
+    share_c = b.const("surface_share", share)
+    weight = share_c if keep is None else top.op("Mul", keep, share_c)
+    return top.op("Add", background, top.op("Mul", weight, top.op("Sub", own, background)))
+
+
 def _composite_buckets(top: Nodes, canvas: str, x: str, cfg: ModelConfig, contract: Contract, plan: BandPlan,
-                       fill_gain: float | None) -> str:
+                       fill_gain: float | None, surface_share: float | None = None) -> str:
     """The reassembled light ``(B, 18, H, W)`` (near / same / far buckets of colour and cover)
     composited front to back, and what they leave uncovered filled: linear RGB ``(B, 3, H, W)``
-    (``LensBokeh.composite``; ``fill_gain``: its learned gain with ``fill = "far_light"``)."""
+    (``LensBokeh.composite``; ``fill_gain``: its learned gain with ``fill = "far_light"``;
+    ``surface_share``: ``LensBokeh.surface_fill_share()`` with ``model.surface_fill``)."""
     b = top.b
     one, zero, eps = b.const("one", 1.0), b.const("zero", 0.0), b.const("eps", _EPS)
     buckets = [top.op("Slice", canvas, b.const(f"b{q}c0", [6 * q], np.int64), b.const(f"b{q}c2", [6 * q + 6], np.int64),
                       b.const("ax1", [1], np.int64)) for q in range(3)]
     out = taken = None
+    colors, covers = [], []
     for q in range(3):
         color = top.op("Slice", buckets[q], b.const("c0", [0], np.int64), b.const("c3", [3], np.int64), b.const("ax1", [1], np.int64))
         cover = top.op("Max", top.op("Slice", buckets[q], b.const("c3", [3], np.int64), b.const("c6", [6], np.int64), "ax1"), zero)
+        colors.append(color)
+        covers.append(cover)
         room = one if taken is None else top.op("Sub", one, taken)
         lit = top.op("Mul", color, top.op("Min", one, top.op("Div", room, top.op("Max", cover, eps))))
         out = lit if out is None else top.op("Add", out, lit)
@@ -394,7 +422,11 @@ def _composite_buckets(top: Nodes, canvas: str, x: str, cfg: ModelConfig, contra
     if cfg.fill == "normalize":
         return top.op("Max", top.op("Div", out, top.op("Max", taken, eps)), zero)
     hole = top.op("Max", top.op("Sub", one, taken), zero)
-    background = hidden_background_graph(top, x, contract, plan.fill_radius_px)
+    background, keep, bound = hidden_background_graph(top, x, contract, plan.fill_radius_px)
+    if (surface_share is not None) != (cfg.surface_fill and cfg.fill != "normalize"):
+        raise ValueError(f"model.surface_fill is {cfg.surface_fill} with fill {cfg.fill!r}: its share is needed there and only there")
+    if surface_share is not None:
+        background = _surface_filled(top, background, keep, bound, colors, covers, surface_share, contract.size)
     if cfg.fill == "background":
         return top.op("Max", top.op("Add", out, top.op("Mul", hole, background)), zero)
     if fill_gain is None:
@@ -410,7 +442,8 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: Mod
                      fp16: bool = False, opset: int = 18, metadata: Mapping[str, str] | None = None,
                      scales: Mapping[int, int] | None = None, rows: bool = False,
                      flow: tuple[tuple[np.ndarray, np.ndarray, np.ndarray], Mapping[int, np.ndarray]] | None = None,
-                     fill_gain: float | None = None, slopes: Mapping[int, np.ndarray] | None = None) -> onnx.ModelProto:
+                     fill_gain: float | None = None, slopes: Mapping[int, np.ndarray] | None = None,
+                     surface_share: float | None = None) -> onnx.ModelProto:
     """The full-image ONNX model of a ``LensBokeh``.
 
     Args:
@@ -430,6 +463,8 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: Mod
             scattered colour at pixel (i, j) is multiplied by ``1 - slope x drift``, the drift
             ``rows[i] . nodes . cols[j]``. None: no drift (gains 1).
         fill_gain: ``LensBokeh.far_light_gain()`` (``fill = "far_light"`` only), > 0.
+        surface_share: ``LensBokeh.surface_fill_share()`` (``model.surface_fill`` with a
+            ``"background"`` or ``"far_light"`` fill only), in (0, 1).
         slopes: ``band_blend = "hermite"`` only: ``{n: (tiles, 2, 3, k, k)}`` the kernels' slopes
             in the diameter times the lattice step (``LensBokeh.kernel_slopes``), binned as
             ``kernels``.
@@ -478,7 +513,7 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: Mod
                    strides=[t, t])
     canvas = top.op("Slice", total, b.const("crop_start", [t_o, t_o], np.int64), b.const("crop_end", [t_o + h, t_o + w], np.int64),
                     "axes_hw")
-    linear = _composite_buckets(top, canvas, x, cfg, contract, plan, fill_gain)
+    linear = _composite_buckets(top, canvas, x, cfg, contract, plan, fill_gain, surface_share)
     shifted = top.op("Add", linear, b.const("offset", float(contract.normalization.offset)))
     scale = b.const("scale", float(contract.normalization.scale))
     top.nodes.append(helper.make_node("Div", [top.op("Sub", shifted, scale), top.op("Add", shifted, scale)], ["defocus"],

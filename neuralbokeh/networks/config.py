@@ -21,9 +21,16 @@ BAND_BLENDS = ("hat", "hermite")
 # the bound of the pixel blur's variance (px^2 per axis): its 3-tap filter [v/2, 1 - v, v/2] stays
 # within a tent (v = 0.5) and a mild sharpening
 PIXEL_BLUR_MAX_PX2 = 0.5
+# coverage (of 1) below which the surface fill's mean colour gives way to the background estimate
+# (``model.surface_fill``; the module and its ONNX graph share it)
+SURFACE_FILL_EPS = 1e-3
+# px from a pixel that hides something within which the surface fill keeps the sharp estimate: an
+# anti-aliased silhouette pixel mixes the occluder's colour with the surface's under the surface's
+# depth, and its truth is nearly that sharp mix (docs/network.md, "The surface fill")
+SILHOUETTE_PX = 1
 # what a checkpoint written before a key existed meant by leaving it out, where the default has
 # changed since: its network is rebuilt as it was trained
-LEGACY_DEFAULTS = {"near_focus_px": 0.0, "pixel_blur": False}
+LEGACY_DEFAULTS = {"near_focus_px": 0.0, "pixel_blur": False, "surface_fill": False}
 KERNEL_SIZES = ("growing", "fixed3")
 TILINGS = ("overlap", "none", "no_overlap")
 HEADS = ("identity", "paper")
@@ -71,6 +78,15 @@ class ModelConfig:
             as the reference renderer's default), ``"normalize"`` (divide by the coverage) or
             ``"far_light"`` (the mean colour of the light from behind that reaches the pixel, for
             up to a learned gain times that light's own coverage, the rest the background).
+        surface_fill: learn what fills the coverage a pixel's own surface leaves short where that
+            pixel stands in front of nothing (lens; ``fill = "background"`` or ``"far_light"``;
+            ``"normalize"`` fills nothing): a share (learned, 0.95 at the start) of the mean
+            colour of the light arriving from its own depth and behind (at most the bound the
+            estimate puts on its own colour), the rest its own sharp colour; pixels within
+            ``SILHOUETTE_PX`` of an occluder keep the sharp colour. Next to a sharp foreground a
+            blurred background's hidden part is that surface blurred, not the sharp pixel the
+            ``"background"`` estimate gives (which the reference renderer uses; the share
+            learns which the data has).
         band_blend: how a pixel between two band centres gets its kernel (lens): ``"hat"`` (the
             linear blend of the two band kernels) or ``"hermite"`` (the cubic Hermite
             interpolation of the two kernels and their slopes in the CoC: each band scatters a
@@ -88,8 +104,8 @@ class ModelConfig:
         pixel_blur_px2: the starting ``v_inf`` (px^2, in (-0.5, 0.5); 0, the default: the area
             raster exactly), with ``pixel_blur`` only.
         (``features``, ``head`` and the FFT thresholds: paper only; ``pupil_*``,
-        ``field_grid``, ``vignetting``, ``occlusion_margin_*``, ``fill``, ``band_blend``,
-        ``near_focus_px``, ``pixel_blur*``: lens only; the rest: both.)
+        ``field_grid``, ``vignetting``, ``occlusion_margin_*``, ``fill``, ``surface_fill``,
+        ``band_blend``, ``near_focus_px``, ``pixel_blur*``: lens only; the rest: both.)
     """
 
     architecture: str = "lens"
@@ -109,6 +125,7 @@ class ModelConfig:
     occlusion_margin_px: float = 2.0
     occlusion_margin_rel: float = 0.0
     fill: str = "background"
+    surface_fill: bool = True
     band_blend: str = "hat"
     near_focus_px: float = 4.0
     pixel_blur: bool = True
@@ -132,6 +149,8 @@ class ModelConfig:
         a = self.near_focus_px
         if isinstance(a, bool) or not (isinstance(a, (int, float)) and math.isfinite(a) and a >= 0):
             raise ValueError(f"model.near_focus_px must be a finite number >= 0 px, got {a!r}")
+        if not isinstance(self.surface_fill, bool):
+            raise ValueError(f"model.surface_fill must be true or false, got {self.surface_fill!r}")
         if not isinstance(self.pixel_blur, bool):
             raise ValueError(f"model.pixel_blur must be true or false, got {self.pixel_blur!r}")
         v = self.pixel_blur_px2

@@ -55,7 +55,10 @@ The skeleton of the paper, given what a lens blur is made of:
    coverage instead; ``"far_light"`` first takes the mean colour of the far bucket, the blurred
    light from behind that reaches the pixel, for up to a learned gain times that
    light's own coverage: the amplification is bounded, so a far highlight seen through a sliver
-   adds at most the gain times its own light; :meth:`LensBokeh.far_light_gain`).
+   adds at most the gain times its own light; :meth:`LensBokeh.far_light_gain`). With
+   ``surface_fill`` a pixel that hides nothing (not an occluder) fills what is left with the
+   mean light of its own depth and behind for a learned share: next to a sharp foreground, what
+   a blurred background is short of is more of itself, blurred (:meth:`LensBokeh.surface_filled`).
 6. *Reassembly.* Each tile scatters the light of its own core (cores partition the image; at
    the image border a core reaches to its window's edge), into its whole window; windows are
    summed into place (light adds, so a tile's blur crosses into its neighbours' cores exactly as
@@ -87,9 +90,9 @@ from ..core.bands import BandPlan, hermite_weights, lattice_blocks, lattice_step
 from ..core.contract import Contract
 from ..core.tiling import TileLayout
 from ..ops.fftconv import next_fast_len
-from ..ops.holes import hidden_background
+from ..ops.holes import hidden_estimate, hidden_pixels, square_max
 from ..ops.tiles import overlap_add, tile
-from .config import PIXEL_BLUR_MAX_PX2, ModelConfig
+from .config import PIXEL_BLUR_MAX_PX2, SILHOUETTE_PX, SURFACE_FILL_EPS, ModelConfig
 
 log = logging.getLogger(__name__)
 
@@ -106,6 +109,9 @@ _EPS = 1e-8
 # well below a pixel (the rasterisation is piecewise smooth at that scale), well above float32's
 # rounding of kernels that sum to 1
 SLOPE_DELTA_PX = 0.02
+# the surface fill's share at the start (model.surface_fill): nearly the surface's own blurred light,
+# what the optics says is behind a sharp foreground, with room for the data to say otherwise
+SURFACE_FILL_START = 0.95
 
 
 def _gate(pos: torch.Tensor, n: int) -> torch.Tensor:
@@ -390,6 +396,9 @@ class LensBokeh(nn.Module):
         # how much of a hole the far light fills, in units of its own coverage: softplus of this
         # (1 at the start), never stuck at a bound as a clamped gain would be once below it
         self.fill_gain = nn.Parameter(torch.tensor([math.log(math.expm1(1.0))])) if cfg.fill == "far_light" else None
+        # logit of the share of a visible pixel's hole that its own surface's blurred light fills
+        surface = cfg.surface_fill and cfg.fill != "normalize"
+        self.surface_fill = nn.Parameter(torch.tensor([math.log(SURFACE_FILL_START / (1.0 - SURFACE_FILL_START))])) if surface else None
         # (atanh of v_inf / its bound, log d_v / 1 px): the area raster exactly at v_inf = 0, with a gradient there
         self.pixel_blur = nn.Parameter(torch.tensor([math.atanh(cfg.pixel_blur_px2 / PIXEL_BLUR_MAX_PX2), 0.0])) if cfg.pixel_blur else None
         self._masks: dict[tuple[int, ...], torch.Tensor] = {}
@@ -687,19 +696,52 @@ class LensBokeh(nn.Module):
                 self.last_convolutions += int(idx.numel())
         return acc.view(b, n_t, 3, 6, win, win)
 
-    def hidden(self, x: torch.Tensor, plan_coc_px: float | None = None) -> torch.Tensor:
-        """Linear ``(B, 3, H, W)`` estimate of what foregrounds hide in the input ``(B, 4, H, W)``
-        (:func:`neuralbokeh.ops.holes.hidden_background`, occluders looked for within the plan's
-        ``fill_radius_px``)."""
+    def hidden(self, x: torch.Tensor, plan_coc_px: float | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """What foregrounds hide in the input ``(B, 4, H, W)``: a linear ``(B, 3, H, W)`` estimate
+        (:func:`neuralbokeh.ops.holes.hidden_background`); ``(B, 1, H, W)`` bool, the pixels that
+        hide something (:func:`~neuralbokeh.ops.holes.hidden_pixels`; none when nothing is
+        blurred) or lie within ``SILHOUETTE_PX`` of one; and the bound the estimate puts on a
+        visible pixel's own colour ``(B, 3, H, W)`` (:func:`~neuralbokeh.ops.holes.hidden_estimate`).
+        The last two are the surface fill's. Occluders are looked for within the plan's
+        ``fill_radius_px``."""
         radius = self.plan(self.frame_coc(x, plan_coc_px)).fill_radius_px
-        return hidden_background(self.contract.normalization.decode(x[:, :3]), x[:, 3:] * float(self.contract.coc_scale_px),
-                                 radius_px=radius)
+        coc = x[:, 3:] * float(self.contract.coc_scale_px)
+        hides = hidden_pixels(coc, radius) if radius else torch.zeros_like(coc, dtype=torch.bool)
+        # a silhouette's pixels mix both surfaces' colours under one of their depths: they keep the estimate
+        beside = square_max(hides.to(coc.dtype), SILHOUETTE_PX) > 0.5
+        background, bound = hidden_estimate(self.contract.normalization.decode(x[:, :3]), coc, radius_px=radius)
+        return background, beside, bound
 
-    def composite(self, acc: torch.Tensor, background: torch.Tensor | None = None) -> torch.Tensor:
+    def surface_fill_share(self) -> torch.Tensor:
+        """The share (0..1) of a visible pixel's hole that its own surface's blurred light fills
+        (``model.surface_fill``)."""
+        if self.surface_fill is None:
+            raise ValueError(f"model.surface_fill is off (or model.fill is {self.config.fill!r}): there is no share")
+        return torch.sigmoid(self.surface_fill)
+
+    def surface_filled(self, background: torch.Tensor, color: torch.Tensor, cover: torch.Tensor, hides: torch.Tensor,
+                       brightest: torch.Tensor) -> torch.Tensor:
+        """The fill ``(B, 3, H, W)`` with ``model.surface_fill``: where a pixel hides nothing and is
+        not beside one that does (``hides`` ``(B, 1, H, W)`` False, :meth:`hidden`), what its
+        coverage leaves short is its own surface behind something nearer, seen blurred: the mean
+        colour of the light from its own depth and behind (the same and far buckets of
+        ``color``, ``cover`` ``(B, 3, 3, H, W)``) for the learned share, the ``background``
+        estimate (its sharp colour) for the rest. With almost no such light
+        (below ``SURFACE_FILL_EPS``) the estimate takes over smoothly. The mean is at most
+        ``brightest``, the estimate's bound on the pixel's own colour: a highlight's light is in
+        the mean already, and a surface hidden beside it is not lit by it again."""
+        own = (color[:, 1] + color[:, 2] + SURFACE_FILL_EPS * background) / (cover[:, 1] + cover[:, 2] + SURFACE_FILL_EPS)
+        own = torch.minimum(own, brightest)
+        share = self.surface_fill_share() * (~hides).to(background.dtype)
+        return background + share * (own - background)
+
+    def composite(self, acc: torch.Tensor, background: torch.Tensor | None = None,
+                  surface: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
         """Buckets ``(B, 3, 6, H, W)`` -> linear RGB ``(B, 3, H, W)``: near over same over far,
         sum-to-saturation per channel; remaining holes filled with ``background`` ``(B, 3, H, W)``
         (``fill = "background"``; ``"far_light"``: the far bucket's mean colour first, see
-        :func:`far_light_fill`) or by normalising."""
+        :func:`far_light_fill`; with ``model.surface_fill`` and ``surface`` = (``hides``,
+        ``brightest``) of :meth:`hidden`, see :meth:`surface_filled`) or by normalising."""
         color, cover = acc[:, :, :3], acc[:, :, 3:].clamp_min(0.0)
         out = torch.zeros_like(color[:, 0])
         taken = torch.zeros_like(out)
@@ -714,6 +756,8 @@ class LensBokeh(nn.Module):
         if background is None:
             return out / taken.clamp_min(_EPS)
         hole = (1.0 - taken).clamp_min(0.0)
+        if self.surface_fill is not None and surface is not None:
+            background = self.surface_filled(background, color, cover, *surface)
         if self.fill_gain is not None:
             return out + far_light_fill(hole, color[:, 2], cover[:, 2], background, self.far_light_gain())
         return out + hole * background
@@ -739,15 +783,18 @@ class LensBokeh(nn.Module):
         b, n_t, _, _, win, _ = acc.shape
         h, w = x.shape[-2:]
         layout = self.layout(h, w)
-        background = self.hidden(x, plan_coc_px) if cfg.fill != "normalize" else None
+        background, hides, brightest = self.hidden(x, plan_coc_px) if cfg.fill != "normalize" else (None, None, None)
         if return_tiles:
-            bg = None if background is None else tile(background, layout).view(b * n_t, 3, win, win)
-            out = self.composite(acc.view(b * n_t, 3, 6, win, win), bg)
+            if background is None:
+                out = self.composite(acc.view(b * n_t, 3, 6, win, win))
+            else:
+                bg, hd, top = (tile(t.to(x.dtype), layout).reshape(b * n_t, -1, win, win) for t in (background, hides, brightest))
+                out = self.composite(acc.view(b * n_t, 3, 6, win, win), bg, (hd > 0.5, top))
             return self.contract.normalization.encode(out.clamp_min(0.0)).view(b, n_t * 3, win, win)
         canvas = overlap_add(acc.view(b, n_t, 18, win, win), layout)
         t_o = layout.overlap
         canvas = canvas[:, :, t_o : t_o + h, t_o : t_o + w]
-        out = self.composite(canvas.view(b, 3, 6, h, w), background)
+        out = self.composite(canvas.view(b, 3, 6, h, w), background, None if hides is None else (hides, brightest))
         return self.contract.normalization.encode(out.clamp_min(0.0))
 
     def tile_targets(self, y: torch.Tensor) -> torch.Tensor:

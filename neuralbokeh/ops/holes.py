@@ -11,6 +11,8 @@ background from the visible one nearby (torch, no file I/O):
 * :func:`push_pull_fill`: fills masked pixels from the unmasked ones around them, coarse to fine
   (pull-push interpolation: normalised box averages on an image pyramid, then each level
   fills the holes of the finer one bilinearly);
+* :func:`hidden_pixels`: the pixels whose surface a renderer must guess behind them (occluders
+  within reach of the widest blur, or in front of a neighbour);
 * :func:`hidden_background`: both together, in the log of the light, the colour a renderer puts
   where its coverage falls short (``fill="background"`` of
   :func:`neuralbokeh.render.scatter_defocus`), with no highlight counted twice.
@@ -49,10 +51,25 @@ def occluders(coc: torch.Tensor, radius_px: int, jump_px: float = JUMP_PX) -> to
     check_positive("jump_px", jump_px, " px")
     if radius_px == 0:
         return torch.zeros_like(coc, dtype=torch.bool)
+    return coc < square_max(coc, radius_px) - jump_px
+
+
+def square_max(x: torch.Tensor, radius_px: int) -> torch.Tensor:
+    """``(B, C, H, W)`` -> the max over the ``(2 radius_px + 1)^2`` square around each pixel
+    (separably: rows, then columns; nothing beyond the image's edges)."""
+    if radius_px == 0:
+        return x
     k = 2 * int(radius_px) + 1
-    far = F.max_pool2d(coc, (1, k), stride=1, padding=(0, radius_px))
-    far = F.max_pool2d(far, (k, 1), stride=1, padding=(radius_px, 0))
-    return coc < far - jump_px
+    out = F.max_pool2d(x, (1, k), stride=1, padding=(0, radius_px))
+    return F.max_pool2d(out, (k, 1), stride=1, padding=(radius_px, 0))
+
+
+def hidden_pixels(coc: torch.Tensor, radius_px: int, jump_px: float = JUMP_PX, step_px: float = STEP_PX) -> torch.Tensor:
+    """``(B, 1, H, W)`` signed CoC (px) -> ``(B, 1, H, W)`` bool: the pixels that stand in front of
+    something a blur can reveal: :func:`occluders` within ``radius_px`` by ``jump_px``, or within
+    the 3 x 3 neighbours by ``step_px`` (the in-focus band's width). What such a pixel hides is
+    another surface; where any other pixel's coverage falls short, its own surface is hidden."""
+    return occluders(coc, radius_px, jump_px) | occluders(coc, 1, step_px)
 
 
 def push_pull_fill(image: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
@@ -122,13 +139,22 @@ def hidden_background(aif: torch.Tensor, coc: torch.Tensor, jump_px: float = JUM
     Returns:
         ``(B, 3, H, W)`` linear RGB.
     """
+    return hidden_estimate(aif, coc, jump_px, radius_px, step_px)[0]
+
+
+def hidden_estimate(aif: torch.Tensor, coc: torch.Tensor, jump_px: float = JUMP_PX, radius_px: int | None = None,
+                    step_px: float = STEP_PX) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`hidden_background` ``(B, 3, H, W)`` and the bound it puts on a visible pixel's own
+    colour, :data:`OUTLIER_RATIO` x the geometric mean of its visible 3 x 3 square (linear,
+    ``(B, 3, H, W)``; ``aif`` itself where ``radius_px`` is 0): what a surface's light is
+    expected to reach there without a highlight's."""
     if radius_px is None:
         radius_px = math.ceil(float(coc.abs().max()) / 2.0) if coc.numel() else 0
     if radius_px == 0:
-        return aif
-    hide = occluders(coc, radius_px, jump_px) | occluders(coc, 1, step_px)
+        return aif, aif
+    hide = hidden_pixels(coc, radius_px, jump_px, step_px)
     keep = (~hide).to(aif.dtype)
     log_aif = torch.log(aif.clamp_min(0.0) + LOG_OFFSET)
     behind = torch.exp(push_pull_fill(log_aif, keep)) - LOG_OFFSET
-    own = torch.minimum(aif, OUTLIER_RATIO * visible_geometric_mean(log_aif, keep) - LOG_OFFSET)
-    return torch.where(hide, behind, own)
+    bound = OUTLIER_RATIO * visible_geometric_mean(log_aif, keep) - LOG_OFFSET
+    return torch.where(hide, behind, torch.minimum(aif, bound)), bound
