@@ -62,10 +62,12 @@ def fill_before(aif: torch.Tensor, coc: torch.Tensor, jump_px: float = 4.0, radi
 
 
 def estimate_before(aif: torch.Tensor, coc: torch.Tensor, jump_px: float = 4.0, radius_px: int | None = None,
-                    step_px: float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:
+                    step_px: float = 1.0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """:func:`fill_before` where the network reads ``ops.holes.hidden_estimate``, with no bound
-    on the surface fill (the AIF)."""
-    return fill_before(aif, coc, jump_px, radius_px), aif
+    on the surface fill (the AIF) and its occluders as the pixels that hide something."""
+    if radius_px is None:
+        radius_px = math.ceil(float(coc.abs().max()) / 2.0) if coc.numel() else 0
+    return fill_before(aif, coc, jump_px, radius_px), aif, holes.occluders(coc, radius_px, jump_px)
 
 
 def composite_over(self: LensBokeh, acc: torch.Tensor, background: torch.Tensor | None = None,

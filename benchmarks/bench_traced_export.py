@@ -113,8 +113,8 @@ class TracedPlate(nn.Module):
         hp, wp = lay.padded_size
         cols = acc.reshape(n_t, 18 * win * win).transpose(0, 1)[None]
         canvas = F.fold(cols, (hp, wp), win, stride=lay.core)[:, :, lay.overlap : lay.overlap + h, lay.overlap : lay.overlap + w]
-        background, hides, brightest = self.hidden(x) if self.cond else m.hidden(x, float(m.contract.max_coc_px))
-        out = m.composite(canvas.view(1, 3, 6, h, w), background, (hides, brightest)).clamp_min(0.0)
+        background, hides, bound = self.hidden(x) if self.cond else m.hidden(x, float(m.contract.max_coc_px))
+        out = m.composite(canvas.view(1, 3, 6, h, w), background, (hides, bound)).clamp_min(0.0)
         if not self.cond:
             return m.contract.normalization.encode(out)
         norm = m.contract.normalization  # Normalization.encode without its range check (data-dependent)

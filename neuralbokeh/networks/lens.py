@@ -90,7 +90,7 @@ from ..core.bands import BandPlan, hermite_weights, lattice_blocks, lattice_step
 from ..core.contract import Contract
 from ..core.tiling import TileLayout
 from ..ops.fftconv import next_fast_len
-from ..ops.holes import hidden_estimate, hidden_pixels, square_max
+from ..ops.holes import hidden_estimate, square_max
 from ..ops.tiles import overlap_add, tile
 from .config import PIXEL_BLUR_MAX_PX2, SILHOUETTE_PX, SURFACE_FILL_EPS, ModelConfig
 
@@ -706,10 +706,9 @@ class LensBokeh(nn.Module):
         ``fill_radius_px``."""
         radius = self.plan(self.frame_coc(x, plan_coc_px)).fill_radius_px
         coc = x[:, 3:] * float(self.contract.coc_scale_px)
-        hides = hidden_pixels(coc, radius) if radius else torch.zeros_like(coc, dtype=torch.bool)
+        background, bound, hides = hidden_estimate(self.contract.normalization.decode(x[:, :3]), coc, radius_px=radius)
         # a silhouette's pixels mix both surfaces' colours under one of their depths: they keep the estimate
         beside = square_max(hides.to(coc.dtype), SILHOUETTE_PX) > 0.5
-        background, bound = hidden_estimate(self.contract.normalization.decode(x[:, :3]), coc, radius_px=radius)
         return background, beside, bound
 
     def surface_fill_share(self) -> torch.Tensor:
@@ -720,7 +719,7 @@ class LensBokeh(nn.Module):
         return torch.sigmoid(self.surface_fill)
 
     def surface_filled(self, background: torch.Tensor, color: torch.Tensor, cover: torch.Tensor, hides: torch.Tensor,
-                       brightest: torch.Tensor) -> torch.Tensor:
+                       bound: torch.Tensor) -> torch.Tensor:
         """The fill ``(B, 3, H, W)`` with ``model.surface_fill``: where a pixel hides nothing and is
         not beside one that does (``hides`` ``(B, 1, H, W)`` False, :meth:`hidden`), what its
         coverage leaves short is its own surface behind something nearer, seen blurred: the mean
@@ -728,10 +727,10 @@ class LensBokeh(nn.Module):
         ``color``, ``cover`` ``(B, 3, 3, H, W)``) for the learned share, the ``background``
         estimate (its sharp colour) for the rest. With almost no such light
         (below ``SURFACE_FILL_EPS``) the estimate takes over smoothly. The mean is at most
-        ``brightest``, the estimate's bound on the pixel's own colour: a highlight's light is in
+        ``bound``, the estimate's bound on the pixel's own colour: a highlight's light is in
         the mean already, and a surface hidden beside it is not lit by it again."""
         own = (color[:, 1] + color[:, 2] + SURFACE_FILL_EPS * background) / (cover[:, 1] + cover[:, 2] + SURFACE_FILL_EPS)
-        own = torch.minimum(own, brightest)
+        own = torch.minimum(own, bound)
         share = self.surface_fill_share() * (~hides).to(background.dtype)
         return background + share * (own - background)
 
@@ -741,7 +740,7 @@ class LensBokeh(nn.Module):
         sum-to-saturation per channel; remaining holes filled with ``background`` ``(B, 3, H, W)``
         (``fill = "background"``; ``"far_light"``: the far bucket's mean colour first, see
         :func:`far_light_fill`; with ``model.surface_fill`` and ``surface`` = (``hides``,
-        ``brightest``) of :meth:`hidden`, see :meth:`surface_filled`) or by normalising."""
+        ``bound``) of :meth:`hidden`, see :meth:`surface_filled`) or by normalising."""
         color, cover = acc[:, :, :3], acc[:, :, 3:].clamp_min(0.0)
         out = torch.zeros_like(color[:, 0])
         taken = torch.zeros_like(out)
@@ -783,18 +782,18 @@ class LensBokeh(nn.Module):
         b, n_t, _, _, win, _ = acc.shape
         h, w = x.shape[-2:]
         layout = self.layout(h, w)
-        background, hides, brightest = self.hidden(x, plan_coc_px) if cfg.fill != "normalize" else (None, None, None)
+        background, hides, bound = self.hidden(x, plan_coc_px) if cfg.fill != "normalize" else (None, None, None)
         if return_tiles:
             if background is None:
                 out = self.composite(acc.view(b * n_t, 3, 6, win, win))
             else:
-                bg, hd, top = (tile(t.to(x.dtype), layout).reshape(b * n_t, -1, win, win) for t in (background, hides, brightest))
-                out = self.composite(acc.view(b * n_t, 3, 6, win, win), bg, (hd > 0.5, top))
+                bg, hd, bd = (tile(t.to(x.dtype), layout).reshape(b * n_t, -1, win, win) for t in (background, hides, bound))
+                out = self.composite(acc.view(b * n_t, 3, 6, win, win), bg, (hd > 0.5, bd))
             return self.contract.normalization.encode(out.clamp_min(0.0)).view(b, n_t * 3, win, win)
         canvas = overlap_add(acc.view(b, n_t, 18, win, win), layout)
         t_o = layout.overlap
         canvas = canvas[:, :, t_o : t_o + h, t_o : t_o + w]
-        out = self.composite(canvas.view(b, 3, 6, h, w), background, None if hides is None else (hides, brightest))
+        out = self.composite(canvas.view(b, 3, 6, h, w), background, None if hides is None else (hides, bound))
         return self.contract.normalization.encode(out.clamp_min(0.0))
 
     def tile_targets(self, y: torch.Tensor) -> torch.Tensor:

@@ -143,18 +143,19 @@ def hidden_background(aif: torch.Tensor, coc: torch.Tensor, jump_px: float = JUM
 
 
 def hidden_estimate(aif: torch.Tensor, coc: torch.Tensor, jump_px: float = JUMP_PX, radius_px: int | None = None,
-                    step_px: float = STEP_PX) -> tuple[torch.Tensor, torch.Tensor]:
-    """:func:`hidden_background` ``(B, 3, H, W)`` and the bound it puts on a visible pixel's own
+                    step_px: float = STEP_PX) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`hidden_background` ``(B, 3, H, W)``; the bound it puts on a visible pixel's own
     colour, :data:`OUTLIER_RATIO` x the geometric mean of its visible 3 x 3 square (linear,
     ``(B, 3, H, W)``; ``aif`` itself where ``radius_px`` is 0): what a surface's light is
-    expected to reach there without a highlight's."""
+    expected to reach there without a highlight's; and :func:`hidden_pixels` ``(B, 1, H, W)``
+    (none where ``radius_px`` is 0)."""
     if radius_px is None:
         radius_px = math.ceil(float(coc.abs().max()) / 2.0) if coc.numel() else 0
     if radius_px == 0:
-        return aif, aif
+        return aif, aif, torch.zeros_like(coc, dtype=torch.bool)
     hide = hidden_pixels(coc, radius_px, jump_px, step_px)
     keep = (~hide).to(aif.dtype)
     log_aif = torch.log(aif.clamp_min(0.0) + LOG_OFFSET)
     behind = torch.exp(push_pull_fill(log_aif, keep)) - LOG_OFFSET
     bound = OUTLIER_RATIO * visible_geometric_mean(log_aif, keep) - LOG_OFFSET
-    return torch.where(hide, behind, torch.minimum(aif, bound)), bound
+    return torch.where(hide, behind, torch.minimum(aif, bound)), bound, hide
