@@ -61,10 +61,12 @@ threads = 1
 def test_a_stored_model_config_reads_back_with_the_dataclass_defaults():
     cfg = ModelConfig(blocks=3, tile=16, overlap=4, pupil_init="disk")
     assert ModelConfig.from_dict(cfg.to_dict()) == cfg
-    assert ModelConfig.from_dict({"blocks": 3, "near_focus_px": 4.0, "pixel_blur": True, "surface_fill": True}) == ModelConfig(blocks=3)
+    assert ModelConfig.from_dict({"blocks": 3, "near_focus_px": 4.0, "pixel_blur": True, "surface_fill": True,
+                                  "occlusion_margin_learned": True}) == ModelConfig(blocks=3)
     # keys whose defaults changed since: left out, they mean what they meant then (a uniform
-    # lattice, no pixel blur, the sharp fill)
-    assert ModelConfig.from_dict({"blocks": 3}) == ModelConfig(blocks=3, near_focus_px=0.0, pixel_blur=False, surface_fill=False)
+    # lattice, no pixel blur, the sharp fill, a fixed margin)
+    assert ModelConfig.from_dict({"blocks": 3}) == ModelConfig(blocks=3, near_focus_px=0.0, pixel_blur=False, surface_fill=False,
+                                                               occlusion_margin_learned=False)
     with pytest.raises(ValueError, match=r"unknown model config keys \['kernels'\]"):
         ModelConfig.from_dict({"blocks": 3, "kernels": "growing"})
 

@@ -346,8 +346,9 @@ class _LensExport:
         flow = None if not bool(drift.abs().max() > 0) else ((drift.numpy(), rows.numpy(), cols.numpy()), slopes)
         gain = None if m.fill_gain is None else float(m.far_light_gain().detach())
         share = None if m.surface_fill is None else float(m.surface_fill_share().detach())
+        margins = {n: float(m.occlusion_margin(float(d[n]))) for n in range(1, m.config.blocks + 1)}
         return build_lens_graph(band_kernels, self.plan, m.config, m.contract, fp16, opset, props, self.scales,
-                                self.spec.rows, flow, gain, kernel_slopes, share)
+                                self.spec.rows, flow, gain, kernel_slopes, share, margins)
 
     def reference(self, x: torch.Tensor, active: torch.Tensor) -> torch.Tensor:
         """The PyTorch function of the exported kernels (coarse grids included) on the

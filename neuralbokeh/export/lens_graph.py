@@ -309,13 +309,14 @@ def _band(b: GraphBuilder, k: int, n: int, side: int, pos: str, side_mask: str, 
 
 def _tile(b: GraphBuilder, k: int, window: str, kernels: Mapping[int, np.ndarray], flow: tuple[str, Mapping[int, np.ndarray]] | None,
           scales: Mapping[int, int], src: np.ndarray, cfg: ModelConfig, contract: Contract, plan: BandPlan, fp16: bool,
-          rows: bool, slopes: Mapping[int, np.ndarray] | None = None) -> onnx.GraphProto:
+          rows: bool, margins: Mapping[int, float], slopes: Mapping[int, np.ndarray] | None = None) -> onnx.GraphProto:
     """Then-branch: tile ``k``'s accumulators ``(B, 3, 6, win, win)``, flattened to ``(1, B 18 win^2)``,
     from the outer ``window``; band ``n``, side ``s`` runs where ``band_active[k, n - 1, s]``. A
     band that does not run gives an empty ``(0, B, 3, 6, win, win)``, so the sum over the bands
     costs only the bands that ran. ``flow``: (the outer window of the centroid drift ``(1, 6,
     win, win)``, ``{n: (2, 3)}`` the gains' slopes) or None (no drift). ``slopes``: ``{n: (2, 3,
-    k, k)}`` the kernels' slopes (Hermite blend) or None (hat)."""
+    k, k)}`` the kernels' slopes (Hermite blend) or None (hat). ``margins``: ``{n: px}`` each
+    band's occlusion margin."""
     g = Nodes(GraphBuilder(b.count), f"t{k}")
     blocks, diameters = plan.blocks, plan.diameters
     win = src.shape[-1]
@@ -349,7 +350,7 @@ def _tile(b: GraphBuilder, k: int, window: str, kernels: Mapping[int, np.ndarray
                 used = g.op("Gather", g.op("Gather", flags, g.c(f"n{n}_row", n - 1, np.int64)), g.c(f"side{side}", side, np.int64))
                 band_flow = None if moved is None else (moved[side], flow[1][n][side])
                 then = _band(g.b, k, n, side, pos, mask, src_mask, rgb, c, kernels[n][side], band_flow, scales.get(n, 1), win,
-                             sign * float(diameters[n]), cfg.occlusion_margin(diameters[n]), fp16, rows,
+                             sign * float(diameters[n]), margins[n], fp16, rows,
                              None if slopes is None else slopes[n][side])
                 skip = Nodes(GraphBuilder(g.b.count), f"t{k}.n{n}s{side}.skip")
                 empty = skip.op("Slice", base, skip.c("s0", [0], np.int64), skip.c("s0", [0], np.int64), skip.c("ax0", [0], np.int64))
@@ -443,7 +444,7 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: Mod
                      scales: Mapping[int, int] | None = None, rows: bool = False,
                      flow: tuple[tuple[np.ndarray, np.ndarray, np.ndarray], Mapping[int, np.ndarray]] | None = None,
                      fill_gain: float | None = None, slopes: Mapping[int, np.ndarray] | None = None,
-                     surface_share: float | None = None) -> onnx.ModelProto:
+                     surface_share: float | None = None, margins: Mapping[int, float] | None = None) -> onnx.ModelProto:
     """The full-image ONNX model of a ``LensBokeh``.
 
     Args:
@@ -465,6 +466,8 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: Mod
         fill_gain: ``LensBokeh.far_light_gain()`` (``fill = "far_light"`` only), > 0.
         surface_share: ``LensBokeh.surface_fill_share()`` (``model.surface_fill`` with a
             ``"background"`` or ``"far_light"`` fill only), in (0, 1).
+        margins: ``{n: px}`` band n's occlusion margin, ``LensBokeh.occlusion_margin`` (needed
+            with ``model.occlusion_margin_learned``; None: ``ModelConfig.occlusion_margin``).
         slopes: ``band_blend = "hermite"`` only: ``{n: (tiles, 2, 3, k, k)}`` the kernels' slopes
             in the diameter times the lattice step (``LensBokeh.kernel_slopes``), binned as
             ``kernels``.
@@ -473,6 +476,10 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: Mod
         raise ValueError(f"the lens graph needs opset >= 18 (Col2Im), got {opset}")
     if (slopes is not None) != (cfg.band_blend == "hermite"):
         raise ValueError(f"model.band_blend is {cfg.band_blend!r}: kernel slopes are needed for 'hermite' and only there")
+    if margins is None:
+        if cfg.occlusion_margin_learned:
+            raise ValueError("model.occlusion_margin_learned: the graph needs the network's margins (LensBokeh.occlusion_margin)")
+        margins = {n: cfg.occlusion_margin(plan.diameters[n]) for n in range(1, plan.blocks + 1)}
     scales = dict(scales or {})
     layout = cfg.layout(*contract.size)
     source_masks = layout.source_masks()
@@ -499,7 +506,7 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: Mod
         tile_kernels = {n: kernels[n][k] for n in kernels}
         tile_flow = None if drift is None else (top.op("Slice", drift, starts, ends, "axes_hw"), flow[1])
         tile_slopes = None if slopes is None else {n: slopes[n][k] for n in slopes}
-        then = _tile(b, k, window, tile_kernels, tile_flow, scales, source_masks[k], cfg, contract, plan, fp16, rows, tile_slopes)
+        then = _tile(b, k, window, tile_kernels, tile_flow, scales, source_masks[k], cfg, contract, plan, fp16, rows, margins, tile_slopes)
         b.count += 10_000  # branch-local names stay unique across branches
         other = _passthrough(b, k, window, source_masks[k], contract.normalization)
         b.count += 10_000

@@ -30,7 +30,7 @@ SURFACE_FILL_EPS = 1e-3
 SILHOUETTE_PX = 1
 # what a checkpoint written before a key existed meant by leaving it out, where the default has
 # changed since: its network is rebuilt as it was trained
-LEGACY_DEFAULTS = {"near_focus_px": 0.0, "pixel_blur": False, "surface_fill": False}
+LEGACY_DEFAULTS = {"near_focus_px": 0.0, "pixel_blur": False, "surface_fill": False, "occlusion_margin_learned": False}
 KERNEL_SIZES = ("growing", "fixed3")
 TILINGS = ("overlap", "none", "no_overlap")
 HEADS = ("identity", "paper")
@@ -73,6 +73,9 @@ class ModelConfig:
             occlusion_margin_px, occlusion_margin_rel * d)`` (lens, >= 0; 0: fixed). A sloped
             surface at a large CoC spans several px of CoC across a blur's reach; a fixed 2 px
             margin makes its nearer part occlude its farther part.
+        occlusion_margin_learned: learn a factor on that margin (lens; 1 at the start, the
+            same for every band): how far apart in CoC two pixels may be and still be one
+            surface depends on the data (how its depth was made, how its surfaces slope).
         fill: what the lens architecture puts where its coverage falls short (what a blurred
             foreground uncovers): ``"background"`` (the visible background around the occluder,
             as the reference renderer's default), ``"normalize"`` (divide by the coverage) or
@@ -104,7 +107,7 @@ class ModelConfig:
         pixel_blur_px2: the starting ``v_inf`` (px^2, in (-0.5, 0.5); 0, the default: the area
             raster exactly), with ``pixel_blur`` only.
         (``features``, ``head`` and the FFT thresholds: paper only; ``pupil_*``,
-        ``field_grid``, ``vignetting``, ``occlusion_margin_*``, ``fill``, ``surface_fill``,
+        ``field_grid``, ``vignetting``, ``occlusion_margin*``, ``fill``, ``surface_fill``,
         ``band_blend``, ``near_focus_px``, ``pixel_blur*``: lens only; the rest: both.)
     """
 
@@ -124,6 +127,7 @@ class ModelConfig:
     vignetting: bool = True
     occlusion_margin_px: float = 2.0
     occlusion_margin_rel: float = 0.0
+    occlusion_margin_learned: bool = True
     fill: str = "background"
     surface_fill: bool = True
     band_blend: str = "hat"
@@ -149,6 +153,8 @@ class ModelConfig:
         a = self.near_focus_px
         if isinstance(a, bool) or not (isinstance(a, (int, float)) and math.isfinite(a) and a >= 0):
             raise ValueError(f"model.near_focus_px must be a finite number >= 0 px, got {a!r}")
+        if not isinstance(self.occlusion_margin_learned, bool):
+            raise ValueError(f"model.occlusion_margin_learned must be true or false, got {self.occlusion_margin_learned!r}")
         if not isinstance(self.surface_fill, bool):
             raise ValueError(f"model.surface_fill must be true or false, got {self.surface_fill!r}")
         if not isinstance(self.pixel_blur, bool):
@@ -195,7 +201,8 @@ class ModelConfig:
         return TileLayout.for_image(height, width, self.tile, self.overlap, self.tiling)
 
     def occlusion_margin(self, diameter_px: float) -> float:
-        """The buckets' margin (px of CoC) for light of a band of diameter ``diameter_px``."""
+        """The buckets' margin (px of CoC) for light of a band of diameter ``diameter_px``, before
+        the learned factor (``occlusion_margin_learned``, ``LensBokeh.occlusion_margin``)."""
         return max(float(self.occlusion_margin_px), float(self.occlusion_margin_rel) * float(diameter_px))
 
     def kernel_size(self, n: int) -> int:

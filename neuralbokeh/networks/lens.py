@@ -46,7 +46,7 @@ The skeleton of the paper, given what a lens blur is made of:
    zero there).
 5. *Occlusion* (near over far, without the layered scatter's trap on continuous surfaces).
    Light arriving at pixel ``p`` is sorted by its band's CoC relative to ``p``'s own CoC into
-   *near*, *same surface* and *far* buckets (soft ramps ``ModelConfig.occlusion_margin(d_n)`` wide). Inside a
+   *near*, *same surface* and *far* buckets (soft ramps :meth:`LensBokeh.occlusion_margin` wide). Inside a
    bucket light is summed, so neighbouring bands of one sloped surface never occlude each
    other; across buckets it is composited near over same over far with sum-to-saturation
    (light-field patent). Coverage that stays below 1 (where a blurred foreground uncovers what
@@ -129,9 +129,10 @@ def band_gates(coc_px: torch.Tensor, max_coc_px: float, blocks: int) -> torch.Te
     return torch.stack([_gate(pos, n) for n in range(blocks + 1)], dim=-1)
 
 
-def bucket_weights(band_coc: float, receiver_coc: torch.Tensor, margin: float) -> torch.Tensor:
+def bucket_weights(band_coc: float, receiver_coc: torch.Tensor, margin: float | torch.Tensor) -> torch.Tensor:
     """Soft (near, same, far) weights ``(3, ...)`` of light from a band at signed CoC ``band_coc``
-    arriving at pixels whose own signed CoC is ``receiver_coc`` (px; negative = in front)."""
+    arriving at pixels whose own signed CoC is ``receiver_coc`` (px; negative = in front), each
+    ramp ``margin`` px wide (> 0; a scalar tensor when learned)."""
     delta = band_coc - receiver_coc  # < 0: the source is nearer than the receiver
     near = ((-delta - margin) / margin).clamp(0.0, 1.0)
     far = ((delta - margin) / margin).clamp(0.0, 1.0)
@@ -399,6 +400,8 @@ class LensBokeh(nn.Module):
         # logit of the share of a visible pixel's hole that its own surface's blurred light fills
         surface = cfg.surface_fill and cfg.fill != "normalize"
         self.surface_fill = nn.Parameter(torch.tensor([math.log(SURFACE_FILL_START / (1.0 - SURFACE_FILL_START))])) if surface else None
+        # log of the factor on the buckets' occlusion margin (1 at the start)
+        self.margin_scale = nn.Parameter(torch.zeros(1)) if cfg.occlusion_margin_learned else None
         # (atanh of v_inf / its bound, log d_v / 1 px): the area raster exactly at v_inf = 0, with a gradient there
         self.pixel_blur = nn.Parameter(torch.tensor([math.atanh(cfg.pixel_blur_px2 / PIXEL_BLUR_MAX_PX2), 0.0])) if cfg.pixel_blur else None
         self._masks: dict[tuple[int, ...], torch.Tensor] = {}
@@ -688,7 +691,7 @@ class LensBokeh(nn.Module):
                     ws = (g_slope * side_mask).reshape(b * n_t, 1, win, win)[idx]
                     feats = torch.cat([feats, colour * ws, ws], dim=1)  # (M, 8, win, win)
                 out = _scatter(feats, kern[:, side], which, scales.get(n, 1), None if slope is None else slope[:, side])
-                bw = bucket_weights(sign * float(diameters[n]), coc_flat[idx], cfg.occlusion_margin(diameters[n]))
+                bw = bucket_weights(sign * float(diameters[n]), coc_flat[idx], self.occlusion_margin(float(diameters[n])))
                 contrib = bw.permute(1, 0, 2, 3).unsqueeze(2) * out.unsqueeze(1)  # (M, 3, 6, win, win)
                 # one band at a time: memory stays O(image), not O(image x bands); in place, so no
                 # band copies the whole accumulator
@@ -710,6 +713,12 @@ class LensBokeh(nn.Module):
         # a silhouette's pixels mix both surfaces' colours under one of their depths: they keep the estimate
         beside = square_max(hides.to(coc.dtype), SILHOUETTE_PX) > 0.5
         return background, beside, bound
+
+    def occlusion_margin(self, diameter: float) -> torch.Tensor | float:
+        """The buckets' margin (px of CoC, > 0) for light of a band of diameter ``diameter`` (px):
+        ``ModelConfig.occlusion_margin`` times the learned factor (``model.occlusion_margin_learned``)."""
+        base = self.config.occlusion_margin(diameter)
+        return base if self.margin_scale is None else base * torch.exp(self.margin_scale[0])
 
     def surface_fill_share(self) -> torch.Tensor:
         """The share (0..1) of a visible pixel's hole that its own surface's blurred light fills
