@@ -1,6 +1,7 @@
 """The photograph path end to end: synthetic DNG stacks of one camera (and the same stacks
 developed to 16-bit PNG) -> ``data_tools.raw`` -> training through two held-out evaluations ->
-``export.py`` -> the torch-free runtime. Photographs declare no aperture, so there is no oracle."""
+``export.py`` -> the torch-free runtime; the same for refocused light fields. Photographs and
+light fields declare no aperture, so there is no oracle."""
 
 import csv
 import json
@@ -13,6 +14,8 @@ import pytest
 import torch
 from kornia.color import linear_rgb_to_rgb
 
+from data_tools.lightfield import main as lightfield_main
+from data_tools.lightfield import view_offsets
 from data_tools.raw.__main__ import main as raw_main
 from data_tools.raw.decode import DecodeSettings, decode
 from data_tools.raw.synthetic import make_stack
@@ -144,6 +147,37 @@ threads = 1
         want = model.contract.apply(model, chw, coc)[0].numpy().transpose(1, 2, 0)
     assert np.isfinite(got).all()
     np.testing.assert_allclose(got, want, rtol=1e-3, atol=1e-4)
+
+
+def _light_field(seed: int, n: int = 5, size=(40, 48)) -> tuple[np.ndarray, np.ndarray]:
+    """An n x n light field of a textured square (disparity 2) over a textured plane (-1)."""
+    rng = np.random.default_rng(seed)
+    far, near = (rng.uniform(0.05, 1.0, (*size, 3)).astype(np.float32) for _ in range(2))
+    mask = np.zeros(size, bool)
+    mask[10 + seed:26 + seed, 12:32] = True
+    du, dv = view_offsets(n)
+    views = np.empty((n, n, *size, 3), np.float32)
+    for r in range(n):
+        for c in range(n):
+            shift = lambda d: (int(d * dv[r, c]), int(-d * du[r, c]))  # noqa: E731 (the views' signs (-1, 1))
+            views[r, c] = np.roll(far, shift(-1), axis=(0, 1))
+            m = np.roll(mask, shift(2), axis=(0, 1))
+            views[r, c][m] = np.roll(near, shift(2), axis=(0, 1))[m]
+    return views, np.where(mask, 2.0, -1.0).astype(np.float32)
+
+
+def test_light_fields_train_evaluate_export_and_render(tmp_path):
+    # a refocused light field declares no aperture either (the views' lens is the learner's to
+    # find), so it takes the photograph path: three scenes of one camera, no oracle row
+    for i in range(3):
+        views, disparity = _light_field(i)
+        np.save(tmp_path / f"views_{i}.npy", views)
+        np.save(tmp_path / f"disp_{i}.npy", disparity)
+        assert lightfield_main([str(tmp_path / f"views_{i}.npy"), "--disparity", str(tmp_path / f"disp_{i}.npy"),
+                                "--out", str(tmp_path / "ds"), "--name", f"lf_{i}", "--disparity-to-depth", "-3", "6",
+                                "--focus-disparities=-1,0.5,2"]) == 0
+    assert json.loads((tmp_path / "ds" / "lf_0" / "scene.json").read_text())["aperture"] is None
+    _train_export_render(tmp_path / "ds", tmp_path)
 
 
 def test_raw_stacks_train_evaluate_export_and_render(camera_dataset, tmp_path):

@@ -340,13 +340,13 @@ class _LensExport:
             band_kernels = {n: reduce_kernel(m.kernels(n, pupils, float(d[n])).double(), self.scales[n]).numpy()
                             for n in range(1, m.config.blocks + 1)}
             slopes = {n: m.gain_slopes(float(d[n])).double().numpy() for n in range(1, m.config.blocks + 1)}
+            margins = {n: float(m.occlusion_margin(float(d[n]))) for n in range(1, m.config.blocks + 1)}
             kernel_slopes = None if m.config.band_blend != "hermite" else {
                 n: reduce_kernel(m.kernel_slopes(n, pupils, float(d[n]), self.plan.band_step_px(n)).double(), self.scales[n]).numpy()
                 for n in range(1, m.config.blocks + 1)}
         flow = None if not bool(drift.abs().max() > 0) else ((drift.numpy(), rows.numpy(), cols.numpy()), slopes)
         gain = None if m.fill_gain is None else float(m.far_light_gain().detach())
         share = None if m.surface_fill is None else float(m.surface_fill_share().detach())
-        margins = {n: float(m.occlusion_margin(float(d[n]))) for n in range(1, m.config.blocks + 1)}
         return build_lens_graph(band_kernels, self.plan, m.config, m.contract, fp16, opset, props, self.scales,
                                 self.spec.rows, flow, gain, kernel_slopes, share, margins)
 
