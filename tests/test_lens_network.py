@@ -741,17 +741,18 @@ def test_the_pixel_blur_starts_as_the_area_raster_and_adds_its_variance_to_every
     pupils = plain.tile_pupils(plain.layout(48, 48), 48, 48)[0, :1].double()
     for start in (0.3, -0.2):
         m = _model(pixel_blur=True, pixel_blur_px2=start).double()
-        assert float(m.pixel_blur_px2(0.0)) == 0.0
-        for d in (1.5, 3.0, 5.0):  # block 4's 9 px kernel holds a 5 px disk and its blur
-            want = start * (1.0 - math.exp(-d))
-            assert float(m.pixel_blur_px2(d)) == pytest.approx(want, rel=1e-6)
-            k0, k1 = plain.double().kernels(4, pupils, d)[0, 0, 1], m.kernels(4, pupils, d)[0, 0, 1]
-            assert float(k1.sum()) == pytest.approx(1.0, abs=1e-12) and float(k1.min()) >= 0.0
-            for v0, v1 in zip(_axis_variance(k0), _axis_variance(k1)):
-                if start > 0:
-                    assert v1 - v0 == pytest.approx(float(m.pixel_blur_px2(d)), abs=1e-9)
-                else:  # sharpening: what would dip below zero beside the rim is cut, so it narrows by less
-                    assert want - 1e-9 < v1 - v0 < 0.0
+        with torch.no_grad():
+            assert float(m.pixel_blur_px2(0.0)) == 0.0
+            for d in (1.5, 3.0, 5.0):  # block 4's 9 px kernel holds a 5 px disk and its blur
+                want = start * (1.0 - math.exp(-d))
+                assert float(m.pixel_blur_px2(d)) == pytest.approx(want, rel=1e-6)
+                k0, k1 = plain.double().kernels(4, pupils, d)[0, 0, 1], m.kernels(4, pupils, d)[0, 0, 1]
+                assert float(k1.sum()) == pytest.approx(1.0, abs=1e-12) and float(k1.min()) >= 0.0
+                for v0, v1 in zip(_axis_variance(k0), _axis_variance(k1)):
+                    if start > 0:
+                        assert v1 - v0 == pytest.approx(float(m.pixel_blur_px2(d)), abs=1e-9)
+                    else:  # sharpening: what would dip below zero beside the rim is cut, so it narrows by less
+                        assert want - 1e-9 < v1 - v0 < 0.0
     with pytest.raises(ValueError, match="set model.pixel_blur = true"):
         ModelConfig(blocks=2, pixel_blur=False, pixel_blur_px2=0.1)
     with pytest.raises(ValueError, match=r"pixel_blur_px2 must be a number in \(-0.5, 0.5\) px\^2, got 0.5"):
@@ -793,4 +794,4 @@ def test_the_pixel_blur_learns_the_blur_the_truth_adds_and_none_where_it_adds_no
         opt.step()
         losses.append(loss.item())
     assert losses[-1] < fall * losses[0], losses
-    assert low < float(m.pixel_blur_px2(100.0)) < high
+    assert low < float(m.pixel_blur_px2(100.0).detach()) < high
