@@ -353,7 +353,7 @@ def test_a_margin_that_grows_with_the_band_and_a_pixel_blur_export_with_parity(b
     elif option == "surface_fill":
         assert float(model.surface_fill_share().detach()) == pytest.approx(0.3)
     else:
-        assert float(model.pixel_blur_px2(d[-1])) == pytest.approx(0.3 * (1.0 - math.exp(-d[-1] / math.exp(0.5))), rel=1e-5)
+        assert float(model.pixel_blur_px2(d[-1]).detach()) == pytest.approx(0.3 * (1.0 - math.exp(-d[-1] / math.exp(0.5))), rel=1e-5)
     report = export_checkpoint(ckpt, tmp_path / f"{option}.onnx", kernels="direct", threads=1)
     assert max(report["parity"].values()) <= 1e-4, report["parity"]
     x = calibration_inputs(*model.contract.size, count=2, seed=7)

@@ -348,7 +348,7 @@ class _LensExport:
         gain = None if m.fill_gain is None else float(m.far_light_gain().detach())
         share = None if m.surface_fill is None else float(m.surface_fill_share().detach())
         return build_lens_graph(band_kernels, self.plan, m.config, m.contract, fp16, opset, props, self.scales,
-                                self.spec.rows, flow, gain, kernel_slopes, share, margins)
+                                self.spec.rows, flow, gain, kernel_slopes, share, margins=margins)
 
     def reference(self, x: torch.Tensor, active: torch.Tensor) -> torch.Tensor:
         """The PyTorch function of the exported kernels (coarse grids included) on the

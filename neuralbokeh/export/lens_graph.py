@@ -444,7 +444,7 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: Mod
                      scales: Mapping[int, int] | None = None, rows: bool = False,
                      flow: tuple[tuple[np.ndarray, np.ndarray, np.ndarray], Mapping[int, np.ndarray]] | None = None,
                      fill_gain: float | None = None, slopes: Mapping[int, np.ndarray] | None = None,
-                     surface_share: float | None = None, margins: Mapping[int, float] | None = None) -> onnx.ModelProto:
+                     surface_share: float | None = None, *, margins: Mapping[int, float]) -> onnx.ModelProto:
     """The full-image ONNX model of a ``LensBokeh``.
 
     Args:
@@ -466,8 +466,7 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: Mod
         fill_gain: ``LensBokeh.far_light_gain()`` (``fill = "far_light"`` only), > 0.
         surface_share: ``LensBokeh.surface_fill_share()`` (``model.surface_fill`` with a
             ``"background"`` or ``"far_light"`` fill only), in (0, 1).
-        margins: ``{n: px}`` band n's occlusion margin, ``LensBokeh.occlusion_margin`` (needed
-            with ``model.occlusion_margin_learned``; None: ``ModelConfig.occlusion_margin``).
+        margins: ``{n: px}`` band n's occlusion margin, ``LensBokeh.occlusion_margin``.
         slopes: ``band_blend = "hermite"`` only: ``{n: (tiles, 2, 3, k, k)}`` the kernels' slopes
             in the diameter times the lattice step (``LensBokeh.kernel_slopes``), binned as
             ``kernels``.
@@ -476,10 +475,6 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: Mod
         raise ValueError(f"the lens graph needs opset >= 18 (Col2Im), got {opset}")
     if (slopes is not None) != (cfg.band_blend == "hermite"):
         raise ValueError(f"model.band_blend is {cfg.band_blend!r}: kernel slopes are needed for 'hermite' and only there")
-    if margins is None:
-        if cfg.occlusion_margin_learned:
-            raise ValueError("model.occlusion_margin_learned: the graph needs the network's margins (LensBokeh.occlusion_margin)")
-        margins = {n: cfg.occlusion_margin(plan.diameters[n]) for n in range(1, plan.blocks + 1)}
     scales = dict(scales or {})
     layout = cfg.layout(*contract.size)
     source_masks = layout.source_masks()
