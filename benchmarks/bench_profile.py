@@ -7,8 +7,9 @@ The file: a lens network's export for 1920x1080 plates (default: the untrained p
 export that ``bench_options.py`` writes; run it first). The frames: ``bench_runtime.py``'s
 procedural frame (largest |CoC| 40 px), a third of its CoC and its left half in focus. Per frame,
 one warm-up and one profiled render each in a session of its own: the render's ms, the node time
-(ms) of the graph's frame-wide ops (the windows' cuts, the overlap-add, the fill, the composite),
-of each tile's own ops and of its bands' ops (``If`` nodes left out: their time is that of the
+(ms) of the graph's frame-wide ops (the windows' cuts, the fill), of each output core's ops (the
+overlap-add, the composite and the encoding of the cores a blur reaches), of each tile's own ops
+and of its bands' ops (``If`` nodes left out: their time is that of the
 nodes they hold), the tiles and band scatters that ran, and the frame-wide ops that cost most.
 """
 
@@ -39,6 +40,8 @@ def _part(name: str) -> str:
     """Which part of the graph a node belongs to, from the names ``lens_graph`` gives it."""
     if re.match(r"t\d+\.n\d+s\d", name):
         return "band"
+    if re.match(r"c\d+", name):
+        return "core"
     return "tile" if re.match(r"t\d+", name) else "frame"
 
 
@@ -85,15 +88,15 @@ def main() -> None:
     args.out_dir.mkdir(parents=True, exist_ok=True)
     args.repeats = 1
     frames, _ = _frames(args, H, W, 40.0)
-    print(f"{'frame':16s} {'render ms':>9s} {'frame-wide':>10s} {'per tile':>8s} {'per band':>8s} {'tiles':>5s} {'bands':>5s}   "
-          "costliest frame-wide ops (ms)")
+    heads = ("render ms", "frame-wide", "per core", "per tile", "per band", "tiles", "bands")
+    print(f"{'frame':16s} " + " ".join(f"{h:>10s}" for h in heads) + "   costliest frame-wide ops (ms)")
     with tempfile.TemporaryDirectory() as tmp:
         for name, path in frames.items():
             z = np.load(path)
             ms, parts, ops, tiles, bands = profile(args.onnx, z["aif"], z["coc"], args.threads, str(Path(tmp) / name))
             top = ", ".join(f"{op} {v:.0f}" for op, v in ops.most_common(4))
-            print(f"{name:16s} {ms:9.0f} {parts['frame']:10.0f} {parts['tile']:8.0f} {parts['band']:8.0f} {tiles:5d} {bands:5d}   {top}",
-                  flush=True)
+            cells = [ms, parts["frame"], parts["core"], parts["tile"], parts["band"], tiles, bands]
+            print(f"{name:16s} " + " ".join(f"{v:10.0f}" for v in cells) + f"   {top}", flush=True)
 
 
 if __name__ == "__main__":

@@ -17,7 +17,7 @@ from neuralbokeh.core.contract import Contract
 from neuralbokeh.core.normalization import Normalization
 from neuralbokeh.export.exporter import calibration_inputs, export_checkpoint, probe_inputs, run_session
 from neuralbokeh.export.graph import GraphBuilder
-from neuralbokeh.export.lens_graph import LENS_DEFAULT_KERNELS, Nodes, conv_rows, hidden_background_graph, window_max
+from neuralbokeh.export.lens_graph import LENS_DEFAULT_KERNELS, Nodes, conv_rows, core_cells, hidden_background_graph, window_max
 from neuralbokeh.export.lowrank import cheaper_ranks, factorize, parse_kernels, reconstruct, relative_error
 from neuralbokeh.ops.holes import hidden_background, hidden_pixels
 from neuralbokeh.runtime.onnx_model import make_session
@@ -203,6 +203,24 @@ def test_graph_fill_is_the_hidden_background(h, w, c_max):
     hides = hidden_pixels(coc_px, radius).numpy()  # the surface fill's mask: the pixels that hide something
     assert h * w == 1 or 0 < hides.sum() < hides.size
     np.testing.assert_array_equal(got_keep, (~hides).astype(np.float32))
+
+
+@pytest.mark.parametrize("size, core, overlap", [(100, 32, 8), (97, 32, 16), (33, 32, 0), (240, 24, 12), (7, 8, 3)])
+def test_each_core_is_cut_into_cells_that_the_same_windows_cover(size, core, overlap):
+    from neuralbokeh.core.tiling import TileLayout
+
+    layout = TileLayout.for_image(size, size, core, overlap)
+    starts = [m * core - overlap for m in range(layout.rows)]  # window m covers [start, start + core + 2 overlap)
+    seen = np.zeros(size, int)
+    for i in range(layout.rows):
+        r0, r1, _, _ = layout.source_region(i * layout.cols, size, size)
+        cells = core_cells(i, layout.rows, r0, r1, core, overlap)
+        assert cells[0][0] == r0 and cells[-1][1] == r1 and all(a[1] == b[0] and a[0] < a[1] for a, b in zip(cells, cells[1:]))
+        for u, v, over in cells:
+            for px in range(u, v):
+                seen[px] += 1
+                assert sorted(over) == [(m, s) for m, s in enumerate(starts) if s <= px < s + core + 2 * overlap]
+    assert (seen == 1).all()  # the cores' cells cover the image once
 
 
 @pytest.mark.parametrize("r, h, w", [(1, 6, 5), (3, 4, 9), (5, 17, 12), (21, 7, 50), (8, 3, 3)])

@@ -124,6 +124,32 @@ def test_in_focus_tiles_are_skipped_and_defocused_ones_unchanged(which, request)
     np.testing.assert_allclose(everything_sharp, aif, rtol=2e-6)
 
 
+def test_a_core_no_running_window_reaches_is_the_input_bit_for_bit(busy_onnx):
+    m_full = OnnxBokeh(busy_onnx, threads=1, skip_in_focus=False)
+    m_skip = OnnxBokeh(busy_onnx, threads=1)
+    rows, cols, t, t_o = m_skip.layout
+    edge = 2 * t + t_o  # the middle column's window ends here: only the last column runs
+    assert cols == 3 and edge + 1 < m_skip.width
+    aif = _scene(m_skip, seed=4)
+    coc = np.zeros((m_skip.height, m_skip.width))
+    coc[:, edge + 1 :] = -0.8 * m_skip.contract.max_coc_px  # a blurred foreground: its light reaches the middle core
+    full, skip = m_full.render_coc(aif, coc), m_skip.render_coc(aif, coc)
+    assert m_skip.last_tiles_run == rows
+    np.testing.assert_allclose(skip, full, rtol=2e-6, atol=1e-7)
+    assert np.abs(full[:, t:edge] - aif[:, t:edge]).max() > 1e-3  # the middle core took light from the last one
+    # the first column's core: no window that ran reaches it, so the graph hands back its input
+    colour, c = m_skip.contract.encode_inputs(aif.transpose(2, 0, 1)[None], coc[None, None])
+    active = np.arange(rows * cols) % cols == cols - 1
+    bands = m_skip.active_bands(coc[None]) & active[:, None, None]
+    feeds = {"aif": colour.astype(np.float32), "coc": c.astype(np.float32), "tile_active": active, "band_active": bands}
+    black = np.float32(m_skip.contract.normalization.encode(0.0))
+    feeds["aif"][0, 1, 2, 3] = -0.999  # light below 0 (the input allows it): the composite clamps it to black
+    out = m_skip.session.run(["defocus"], feeds)[0]
+    np.testing.assert_array_equal(out[..., :t], np.maximum(feeds["aif"][..., :t], black))
+    assert out[0, 1, 2, 3] == black
+    assert not np.array_equal(out[..., t : 2 * t], feeds["aif"][..., t : 2 * t])
+
+
 def test_bands_no_pixel_of_a_tile_uses_are_left_out_exactly(busy_onnx, busy_checkpoint):
     m_full = OnnxBokeh(busy_onnx, threads=1, skip_in_focus=False)
     m_skip = OnnxBokeh(busy_onnx, threads=1)

@@ -31,11 +31,13 @@ in accuracy, stated in ``tests/test_lens_network.py``: flux kept, light moved by
 export is measured by ``benchmarks/bench_runtime.py``. ``LensBokeh.forward(x, scales=...)`` is
 the PyTorch reference the export is checked against.
 
-The windows' accumulators ((near, same, far) x (RGB, coverage)) are stacked and overlap-added in one ``Col2Im`` (opset 18), then
-composited near over far with sum-to-saturation, the coverage left short filled with the
-hidden-background estimate (a visible pixel's with its own surface's blurred light first, for
-``model.surface_fill``; or normalised, for ``fill = "normalize"``) and encoded, as
-``LensBokeh.forward`` does. ``fp16`` runs the convolutions in float16 (inputs and kernels);
+The output is assembled core by core (an ``If`` per tile core, :func:`_core`): a core that a
+window which ran reaches sums those windows' accumulators ((near, same, far) x (RGB, coverage))
+over itself, cell by cell, composites them near over far with sum-to-saturation, fills the
+coverage left short with the hidden-background estimate (a visible pixel's with its own
+surface's blurred light first, for ``model.surface_fill``; or normalises, for ``fill =
+"normalize"``) and encodes, as ``LensBokeh.forward`` does; any other core is its input,
+unchanged. ``fp16`` runs the convolutions in float16 (inputs and kernels);
 gates, buckets and the composite stay float32.
 """
 
@@ -188,6 +190,11 @@ def window_max(g: Nodes, x: str, r: int, axis: int, size: int) -> str:
     return cur
 
 
+def _cut(g: Nodes, source: str, starts: str, ends: str) -> str:
+    """The window ``[starts, ends)`` (rows, columns) of ``source`` ``(B, C, H, W)``."""
+    return g.op("Slice", source, starts, ends, g.c("axes_hw", [2, 3], np.int64))
+
+
 def _pull(g: Nodes, image: str, weight: str, pads: list[int]) -> tuple[str, str]:
     """One pull step of :func:`neuralbokeh.ops.holes.push_pull_fill`: weight-normalised 2x2
     means and their weight (4 x the mean weight, at most 1); ``pads`` (end side) zero-pads."""
@@ -307,19 +314,22 @@ def _band(b: GraphBuilder, k: int, n: int, side: int, pos: str, side_mask: str, 
     return _branch(g, g.op("Mul", weights, g.op("Unsqueeze", out, g.c("ax02", [0, 2], np.int64))), f"t{k}_band{n}_{side}")
 
 
-def _tile(b: GraphBuilder, k: int, window: str, kernels: Mapping[int, np.ndarray], flow: tuple[str, Mapping[int, np.ndarray]] | None,
+def _tile(b: GraphBuilder, k: int, cut: tuple[str, str, str], kernels: Mapping[int, np.ndarray],
+          flow: tuple[str, Mapping[int, np.ndarray]] | None,
           scales: Mapping[int, int], src: np.ndarray, cfg: ModelConfig, contract: Contract, plan: BandPlan, fp16: bool,
           rows: bool, margins: Mapping[int, float], slopes: Mapping[int, np.ndarray] | None = None) -> onnx.GraphProto:
     """Then-branch: tile ``k``'s accumulators ``(B, 3, 6, win, win)``, flattened to ``(1, B 18 win^2)``,
-    from the outer ``window``; band ``n``, side ``s`` runs where ``band_active[k, n - 1, s]``. A
+    from its window (``cut``: the padded input and the window's corners, cut here: a tile that
+    does not run cuts nothing); band ``n``, side ``s`` runs where ``band_active[k, n - 1, s]``. A
     band that does not run gives an empty ``(0, B, 3, 6, win, win)``, so the sum over the bands
-    costs only the bands that ran. ``flow``: (the outer window of the centroid drift ``(1, 6,
-    win, win)``, ``{n: (2, 3)}`` the gains' slopes) or None (no drift). ``slopes``: ``{n: (2, 3,
+    costs only the bands that ran. ``flow``: (the padded centroid drift ``(1, 6, H_p, W_p)``,
+    ``{n: (2, 3)}`` the gains' slopes) or None (no drift). ``slopes``: ``{n: (2, 3,
     k, k)}`` the kernels' slopes (Hermite blend) or None (hat). ``margins``: ``{n: px}`` each
     band's occlusion margin."""
     g = Nodes(GraphBuilder(b.count), f"t{k}")
     blocks, diameters = plan.blocks, plan.diameters
     win = src.shape[-1]
+    window = _cut(g, *cut)
     _, rgb = _linear_rgb(g, window, contract.normalization)
     coc_in = g.op("Slice", window, g.c("s3", [3], np.int64), g.c("s4", [4], np.int64), g.c("ax1", [1], np.int64))
     one = g.c("one", 1.0)
@@ -342,8 +352,9 @@ def _tile(b: GraphBuilder, k: int, window: str, kernels: Mapping[int, np.ndarray
         behind = g.op("Cast", g.op("Greater", c, g.c("zero", 0.0)), to=TensorProto.FLOAT)
         front = g.op("Cast", g.op("Less", c, g.c("zero", 0.0)), to=TensorProto.FLOAT)
         flags = g.op("Gather", "band_active", g.c("index", k, np.int64))  # (N, 2) of this tile
+        drift = None if flow is None else _cut(g, flow[0], *cut[1:])
         moved = None if flow is None else [
-            g.op("Mul", rgb, g.op("Slice", flow[0], g.c(f"d{s}0", [3 * s], np.int64), g.c(f"d{s}1", [3 * s + 3], np.int64),
+            g.op("Mul", rgb, g.op("Slice", drift, g.c(f"d{s}0", [3 * s], np.int64), g.c(f"d{s}1", [3 * s + 3], np.int64),
                                   g.c("ax1", [1], np.int64))) for s in range(2)]  # colour x drift, per side
         for n in range(1, blocks + 1):
             for side, (mask, sign) in enumerate(((behind, 1.0), (front, -1.0))):
@@ -367,76 +378,208 @@ def _tile(b: GraphBuilder, k: int, window: str, kernels: Mapping[int, np.ndarray
     return _branch(g, g.op("Reshape", base, g.c("flat1", [1, -1], np.int64)), f"t{k}_network")
 
 
-def _passthrough(b: GraphBuilder, k: int, window: str, src: np.ndarray, norm: Normalization) -> onnx.GraphProto:
-    """Else-branch: the tile's core as in-focus light (no convolution), ``(1, B 18 win^2)`` as :func:`_tile`."""
-    g = Nodes(GraphBuilder(b.count), f"t{k}.pass")
-    norm_rgb, rgb = _linear_rgb(g, window, norm)
-    m = g.c("src", src[None, None])
-    ones = g.op("Add", g.op("Mul", norm_rgb, g.c("zero", 0.0)), m)  # (B, 3, win, win) of the mask
-    zeros6 = g.op("Mul", g.op("Concat", rgb, rgb, axis=1), g.c("zero", 0.0))
-    parts = g.op("Concat", zeros6, g.op("Mul", rgb, m), ones, zeros6, axis=1)
-    return _branch(g, g.op("Reshape", parts, g.c("flat", [1, -1], np.int64)), f"t{k}_pass")
+def _idle(b: GraphBuilder, k: int, win: int) -> onnx.GraphProto:
+    """Else-branch of tile ``k``: zeros in place of its accumulators (a memset: a neighbour's core
+    sums them; its own core takes its pass-through instead, :func:`_window_light`)."""
+    g = Nodes(GraphBuilder(b.count), f"t{k}.idle")
+    batch = g.op("Shape", "aif", start=0, end=1)
+    shape = g.op("Concat", g.c("one_i", [1], np.int64), g.op("Mul", batch, g.c("per_image", [18 * win * win], np.int64)), axis=0)
+    return _branch(g, g.op("ConstantOfShape", shape, value=helper.make_tensor("zero", TensorProto.FLOAT, [1], [0.0])), f"t{k}_idle")
 
 
-def _surface_filled(top: Nodes, background: str, keep: str | None, bound: str, colors: list[str], covers: list[str],
-                    share: float, size: tuple[int, int]) -> str:
-    """``LensBokeh.surface_filled``: where a pixel hides nothing (``keep`` 1) and none within
-    ``SILHOUETTE_PX`` does, ``share`` of its fill is the mean colour of the same and far buckets,
-    at most ``bound`` (the estimate's bound on the pixel's own colour), the ``background``
-    estimate the rest."""
-    b = top.b
-    if keep is not None:  # 1 - the max over the square of (1 - keep)
-        one = b.const("surface_one", 1.0)
-        beside = window_max(top, window_max(top, top.op("Sub", one, keep), SILHOUETTE_PX, 3, size[1]), SILHOUETTE_PX, 2, size[0])
-        keep = top.op("Sub", one, beside)
-    eps = b.const("surface_eps", SURFACE_FILL_EPS)
-    num = top.op("Add", top.op("Add", colors[1], colors[2]), top.op("Mul", background, eps))
-    own = top.op("Div", num, top.op("Add", top.op("Add", covers[1], covers[2]), eps))
-    own = top.op("Min", own, bound)
-    share_c = b.const("surface_share", share)
-    weight = share_c if keep is None else top.op("Mul", keep, share_c)
-    return top.op("Add", background, top.op("Mul", weight, top.op("Sub", own, background)))
+def _multi_branch(g: Nodes, results: list[str], name: str) -> onnx.GraphProto:
+    """A branch of ``g``'s nodes with several outputs."""
+    finals = [g.op("Identity", r) for r in results]
+    return helper.make_graph(g.nodes, name, [], [_out(f) for f in finals], g.b.initializers)
 
 
-def _composite_buckets(top: Nodes, canvas: str, x: str, cfg: ModelConfig, contract: Contract, plan: BandPlan,
+def _cut_cells(g: Nodes, acc: str, origin: tuple[int, int], cells: list[tuple[int, int, int, int]]) -> list[str]:
+    """``cells`` (image px ``(r0, r1, c0, c1)``) of a window's accumulators ``acc`` ``(B, 18, win, win)``
+    whose top-left lies at image px ``origin``: ``(B, 18, h, w)`` each."""
+    axes = g.c("axes_hw", [2, 3], np.int64)
+    return [g.op("Slice", acc, g.c(f"s{r0 - origin[0]}_{c0 - origin[1]}", [r0 - origin[0], c0 - origin[1]], np.int64),
+                 g.c(f"e{r1 - origin[0]}_{c1 - origin[1]}", [r1 - origin[0], c1 - origin[1]], np.int64), axes)
+            for r0, r1, c0, c1 in cells]
+
+
+def _window_light(g: Nodes, k: int, idx: int, origin: tuple[int, int], cells: list[tuple[int, int, int, int]],
+                  acc: str, x: str, core: tuple[int, int, int, int], contract: Contract) -> list[str]:
+    """Window ``idx``'s accumulators ``(B, 18, h, w)`` on ``cells`` (image px ``(r0, r1, c0, c1)``) of
+    core ``k`` (``core``), cut from its output ``acc`` ``(B, 18, win, win)`` (its top-left at image px ``origin``;
+    zeros where the tile did not run). The core's own window is an ``If`` on ``tile_active[k]``:
+    where the tile did not run, its core of ``x`` ``(B, 4, H, W)`` as in-focus light (the same
+    bucket: colour and full cover), as the module's pass-through."""
+    if idx != k:
+        return _cut_cells(g, acc, origin, cells)
+    on = Nodes(GraphBuilder(g.b.count), f"c{k}.own")
+    cut = _cut_cells(on, acc, origin, cells)
+    off = Nodes(GraphBuilder(on.b.count), f"c{k}.own.off")
+    y0, y1, x0, x1 = core
+    axes = off.c("axes_hw", [2, 3], np.int64)
+    window = off.op("Slice", x, off.c("start", [y0, x0], np.int64), off.c("stop", [y1, x1], np.int64), axes)
+    norm_rgb, rgb = _linear_rgb(off, window, contract.normalization)
+    ones = off.op("Add", off.op("Mul", norm_rgb, off.c("zero", 0.0)), off.c("one", 1.0))
+    zeros6 = off.op("Mul", off.op("Concat", rgb, rgb, axis=1), off.c("zero", 0.0))
+    sharp = off.op("Concat", zeros6, rgb, ones, zeros6, axis=1)
+    light = [off.op("Slice", sharp, off.c(f"s{r0 - y0}_{c0 - x0}", [r0 - y0, c0 - x0], np.int64),
+                    off.c(f"e{r1 - y0}_{c1 - x0}", [r1 - y0, c1 - x0], np.int64), axes) for r0, r1, c0, c1 in cells]
+    then, other = _multi_branch(on, cut, f"c{k}_own"), _multi_branch(off, light, f"c{k}_own_off")
+    outs = [off.b.fresh(f"c{k}.own.light") for _ in cells]
+    g.b.count = off.b.count + 1
+    cond = g.op("Gather", "tile_active", g.c(f"index{idx}", idx, np.int64))
+    g.nodes.append(helper.make_node("If", [cond], outs, name=outs[0], then_branch=then, else_branch=other))
+    return outs
+
+
+def _surface_filled(g: Nodes, background: str, keep: str | None, bound: str, colors: list[str], covers: list[str],
+                    share: float) -> str:
+    """``LensBokeh.surface_filled``: where a pixel hides nothing and none within ``SILHOUETTE_PX``
+    does (``keep`` 1, :func:`fill_inputs`), ``share`` of its fill is the mean colour of the same
+    and far buckets, at most ``bound`` (the estimate's bound on the pixel's own colour), the
+    ``background`` estimate the rest."""
+    eps = g.c("surface_eps", SURFACE_FILL_EPS)
+    num = g.op("Add", g.op("Add", colors[1], colors[2]), g.op("Mul", background, eps))
+    own = g.op("Div", num, g.op("Add", g.op("Add", covers[1], covers[2]), eps))
+    own = g.op("Min", own, bound)
+    share_c = g.c("surface_share", share)
+    weight = share_c if keep is None else g.op("Mul", keep, share_c)
+    return g.op("Add", background, g.op("Mul", weight, g.op("Sub", own, background)))
+
+
+def fill_inputs(top: Nodes, x: str, cfg: ModelConfig, contract: Contract, plan: BandPlan,
+                surface_share: float | None) -> tuple[str, str | None, str] | None:
+    """The frame-wide inputs of the fill, as ``LensBokeh.hidden``: the hidden-background estimate
+    ``(B, 3, H, W)``, 1 where the surface fill may use a pixel's own light ``(B, 1, H, W)``
+    (None: everywhere) and the bound on a visible pixel's own colour; None for ``fill =
+    "normalize"``. The pull-push and the silhouettes' reach are not local: they are computed
+    once, over the whole frame, and each core reads its part."""
+    if (surface_share is not None) != (cfg.surface_fill and cfg.fill != "normalize"):
+        raise ValueError(f"model.surface_fill is {cfg.surface_fill} with fill {cfg.fill!r}: its share is needed there and only there")
+    if cfg.fill == "normalize":
+        return None
+    g = Nodes(GraphBuilder(top.b.count), "fill")
+    background, keep, bound = hidden_background_graph(g, x, contract, plan.fill_radius_px)
+    if surface_share is not None and keep is not None:  # 1 - the max over the square of (1 - keep)
+        one = g.c("surface_one", 1.0)
+        h, w = contract.size
+        beside = window_max(g, window_max(g, g.op("Sub", one, keep), SILHOUETTE_PX, 3, w), SILHOUETTE_PX, 2, h)
+        keep = g.op("Sub", one, beside)
+    # only a core that a running window reaches reads the fill: with no tile running it is not computed
+    results = [background, bound] if keep is None else [background, bound, keep]
+    then = _multi_branch(g, results, "fill")
+    none = Nodes(GraphBuilder(g.b.count), "fill.none")
+    other = _multi_branch(none, [none.c("zero", 0.0) for _ in results], "fill_none")
+    top.b.count = none.b.count + 1
+    anyone = top.op("Cast", top.op("ReduceMax", top.op("Cast", "tile_active", to=TensorProto.INT32), keepdims=0), to=TensorProto.BOOL)
+    outs = [top.b.fresh("g.fill") for _ in results]
+    top.nodes.append(helper.make_node("If", [anyone], outs, name=outs[0], then_branch=then, else_branch=other))
+    return outs[0], None if keep is None else outs[2], outs[1]
+
+
+def _composite_buckets(g: Nodes, canvas: str, cfg: ModelConfig, fill: tuple[str, str | None, str] | None,
                        fill_gain: float | None, surface_share: float | None = None) -> str:
-    """The reassembled light ``(B, 18, H, W)`` (near / same / far buckets of colour and cover)
-    composited front to back, and what they leave uncovered filled: linear RGB ``(B, 3, H, W)``
-    (``LensBokeh.composite``; ``fill_gain``: its learned gain with ``fill = "far_light"``;
-    ``surface_share``: ``LensBokeh.surface_fill_share()`` with ``model.surface_fill``)."""
-    b = top.b
-    one, zero, eps = b.const("one", 1.0), b.const("zero", 0.0), b.const("eps", _EPS)
-    buckets = [top.op("Slice", canvas, b.const(f"b{q}c0", [6 * q], np.int64), b.const(f"b{q}c2", [6 * q + 6], np.int64),
-                      b.const("ax1", [1], np.int64)) for q in range(3)]
+    """The reassembled light ``(B, 18, h, w)`` (near / same / far buckets of colour and cover)
+    of a part of the frame composited front to back, and what they leave uncovered filled: linear
+    RGB ``(B, 3, h, w)`` (``LensBokeh.composite``; ``fill``: :func:`fill_inputs` on the same
+    part; ``fill_gain``: its learned gain with ``fill = "far_light"``; ``surface_share``:
+    ``LensBokeh.surface_fill_share()`` with ``model.surface_fill``)."""
+    one, zero, eps = g.c("one", 1.0), g.c("zero", 0.0), g.c("eps", _EPS)
+    ax1 = g.c("ax1", [1], np.int64)
+    buckets = [g.op("Slice", canvas, g.c(f"b{q}c0", [6 * q], np.int64), g.c(f"b{q}c2", [6 * q + 6], np.int64), ax1)
+               for q in range(3)]
     out = taken = None
     colors, covers = [], []
     for q in range(3):
-        color = top.op("Slice", buckets[q], b.const("c0", [0], np.int64), b.const("c3", [3], np.int64), b.const("ax1", [1], np.int64))
-        cover = top.op("Max", top.op("Slice", buckets[q], b.const("c3", [3], np.int64), b.const("c6", [6], np.int64), "ax1"), zero)
+        color = g.op("Slice", buckets[q], g.c("c0", [0], np.int64), g.c("c3", [3], np.int64), ax1)
+        cover = g.op("Max", g.op("Slice", buckets[q], g.c("c3", [3], np.int64), g.c("c6", [6], np.int64), ax1), zero)
         colors.append(color)
         covers.append(cover)
-        room = one if taken is None else top.op("Sub", one, taken)
-        lit = top.op("Mul", color, top.op("Min", one, top.op("Div", room, top.op("Max", cover, eps))))
-        out = lit if out is None else top.op("Add", out, lit)
+        room = one if taken is None else g.op("Sub", one, taken)
+        lit = g.op("Mul", color, g.op("Min", one, g.op("Div", room, g.op("Max", cover, eps))))
+        out = lit if out is None else g.op("Add", out, lit)
         # saturated is exactly 1 (taken + cover * frac can round to 1 - ulp, leaking a 1e4 highlight behind)
-        taken = top.op("Min", cover if taken is None else top.op("Add", taken, cover), one)
-    if cfg.fill == "normalize":
-        return top.op("Max", top.op("Div", out, top.op("Max", taken, eps)), zero)
-    hole = top.op("Max", top.op("Sub", one, taken), zero)
-    background, keep, bound = hidden_background_graph(top, x, contract, plan.fill_radius_px)
-    if (surface_share is not None) != (cfg.surface_fill and cfg.fill != "normalize"):
-        raise ValueError(f"model.surface_fill is {cfg.surface_fill} with fill {cfg.fill!r}: its share is needed there and only there")
+        taken = g.op("Min", cover if taken is None else g.op("Add", taken, cover), one)
+    if fill is None:
+        return g.op("Max", g.op("Div", out, g.op("Max", taken, eps)), zero)
+    hole = g.op("Max", g.op("Sub", one, taken), zero)
+    background, keep, bound = fill
     if surface_share is not None:
-        background = _surface_filled(top, background, keep, bound, colors, covers, surface_share, contract.size)
+        background = _surface_filled(g, background, keep, bound, colors, covers, surface_share)
     if cfg.fill == "background":
-        return top.op("Max", top.op("Add", out, top.op("Mul", hole, background)), zero)
+        return g.op("Max", g.op("Add", out, g.op("Mul", hole, background)), zero)
     if fill_gain is None:
         raise ValueError("a far_light fill needs the network's fill_gain")
     # far_light_fill: min(hole / cover, gain) colour + (hole - min(hole, gain cover)) background, of the far bucket
-    gain = b.const("fill_gain", float(fill_gain))
-    far = top.op("Mul", top.op("Min", top.op("Div", hole, top.op("Max", cover, eps)), gain), color)
-    rest = top.op("Sub", hole, top.op("Min", hole, top.op("Mul", gain, cover)))
-    return top.op("Max", top.op("Add", top.op("Add", out, far), top.op("Mul", rest, background)), zero)
+    gain = g.c("fill_gain", float(fill_gain))
+    far = g.op("Mul", g.op("Min", g.op("Div", hole, g.op("Max", cover, eps)), gain), color)
+    rest = g.op("Sub", hole, g.op("Min", hole, g.op("Mul", gain, cover)))
+    return g.op("Max", g.op("Add", g.op("Add", out, far), g.op("Mul", rest, background)), zero)
+
+
+def core_cells(i: int, n: int, start: int, end: int, core: int, overlap: int) -> list[tuple[int, int, list[tuple[int, int]]]]:
+    """Along one axis, core ``i`` of ``n``, the image interval ``[start, end)``: its cells
+    ``(u, v, [(i', origin)])``, each ``[u, v)`` covered whole by the windows ``i'`` (of cores
+    ``i - 1 .. i + 1``; window ``i'`` starts at image px ``origin = i' core - overlap``).
+
+    Raises:
+        ValueError: ``2 overlap > core`` (a window would reach beyond its neighbours' cores).
+    """
+    if not 0 <= 2 * overlap <= core:
+        raise ValueError(f"tile overlap must be 0 to half the core ({core} px), got {overlap} px")
+    near = [(m, m * core - overlap) for m in range(max(0, i - 1), min(n, i + 2))]
+    cuts = sorted({start, end} | {e for m, o in near for e in (o, o + core + 2 * overlap) if start < e < end})
+    return [(u, v, [(m, o) for m, o in near if o <= u and v <= o + core + 2 * overlap]) for u, v in zip(cuts, cuts[1:])]
+
+
+def _core(top: Nodes, layout: Any, k: int, accs: list[str], x: str, fill: tuple[str, str | None, str] | None,
+          cfg: ModelConfig, contract: Contract, fill_gain: float | None, surface_share: float | None) -> str:
+    """Core ``k`` of the output, normalised ``(B, 3, h_k, w_k)`` (its :meth:`TileLayout.source_region`): an ``If``
+    on whether a window that reaches it ran. Then its light is the sum of those windows'
+    accumulators (``accs``: each tile's ``(B, 18, win, win)``) over it, cell by cell (:func:`core_cells`,
+    :func:`_window_light`), composited and encoded there; else it is the input ``x``, unchanged:
+    no window scatters light into it but its own pass-through. The overlap-add, the composite
+    and the encoding cost only the cores a frame's blur reaches."""
+    h, w = contract.size
+    i, j = divmod(k, layout.cols)
+    r0, r1, c0, c1 = layout.source_region(k, h, w)
+    rows = core_cells(i, layout.rows, r0, r1, layout.core, layout.overlap)
+    cols = core_cells(j, layout.cols, c0, c1, layout.core, layout.overlap)
+    g = Nodes(GraphBuilder(top.b.count), f"c{k}")
+    axes = g.c("axes_hw", [2, 3], np.int64)
+    terms: dict[tuple[int, int], list[str]] = {}
+    for m in sorted({m for _, _, o in rows for m, _ in o}):
+        for n in sorted({n for _, _, o in cols for n, _ in o}):
+            cells = [(a, e) for a, (_, _, o) in enumerate(rows) if m in dict(o) for e, (_, _, oc) in enumerate(cols) if n in dict(oc)]
+            spans = [(rows[a][0], rows[a][1], cols[e][0], cols[e][1]) for a, e in cells]
+            origin = (dict(rows[cells[0][0]][2])[m], dict(cols[cells[0][1]][2])[n])
+            idx = m * layout.cols + n
+            for cell, light in zip(cells, _window_light(g, k, idx, origin, spans, accs[idx], x, (r0, r1, c0, c1), contract)):
+                terms.setdefault(cell, []).append(light)
+    strips = []
+    for a in range(len(rows)):
+        cells = [terms[a, e][0] if len(terms[a, e]) == 1 else g.op("Sum", *terms[a, e]) for e in range(len(cols))]
+        strips.append(cells[0] if len(cells) == 1 else g.op("Concat", *cells, axis=3))
+    canvas = strips[0] if len(strips) == 1 else g.op("Concat", *strips, axis=2)
+    start, stop = g.c("start", [r0, c0], np.int64), g.c("stop", [r1, c1], np.int64)
+    part = None if fill is None else tuple(None if f is None else g.op("Slice", f, start, stop, axes) for f in fill)
+    linear = _composite_buckets(g, canvas, cfg, part, fill_gain, surface_share)
+    shifted = g.op("Add", linear, g.c("offset", float(contract.normalization.offset)))
+    scale = g.c("scale", float(contract.normalization.scale))
+    then = _branch(g, g.op("Div", g.op("Sub", shifted, scale), g.op("Add", shifted, scale)), f"core{k}")
+    rest = Nodes(GraphBuilder(g.b.count), f"c{k}.pass")
+    sharp = rest.op("Slice", "aif", rest.c("start", [r0, c0], np.int64), rest.c("stop", [r1, c1], np.int64),
+                    rest.c("axes_hw", [2, 3], np.int64))
+    black = float(contract.normalization.encode(np.float64(0.0)))  # the composite clamps light below 0; encoding keeps order
+    other = _branch(rest, rest.op("Max", sharp, rest.c("black", black)), f"core{k}_pass")
+    b = top.b
+    b.count = rest.b.count + 1
+    reach = [top.op("Gather", "tile_active", b.const(f"t{m * layout.cols + n}.index", m * layout.cols + n, np.int64))
+             for m in sorted({m for _, _, o in rows for m, _ in o}) for n in sorted({n for _, _, o in cols for n, _ in o})]
+    cond = reach[0]
+    for r in reach[1:]:
+        cond = top.op("Or", cond, r)
+    out = top.op("If", cond, then_branch=then, else_branch=other)
+    return out
 
 
 def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: ModelConfig, contract: Contract,
@@ -479,8 +622,7 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: Mod
     layout = cfg.layout(*contract.size)
     source_masks = layout.source_masks()
     h, w = contract.size
-    (hp, wp), win, t, t_o = layout.padded_size, layout.window, layout.core, layout.overlap
-    n_t = layout.num_tiles
+    win, n_t = layout.window, layout.num_tiles
     b = GraphBuilder()
     top = Nodes(b, "g")
     x = top.op("Concat", "aif", "coc", axis=1)
@@ -496,30 +638,26 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: Mod
     placed = []
     for k, r, c in layout.origins():
         starts, ends = b.const(f"t{k}.starts", [r, c], np.int64), b.const(f"t{k}.ends", [r + win, c + win], np.int64)
-        window = top.op("Slice", padded, starts, ends, b.const("axes_hw", [2, 3], np.int64))
+        cut = (padded, starts, ends)
         cond = top.op("Gather", "tile_active", b.const(f"t{k}.index", k, np.int64))
         tile_kernels = {n: kernels[n][k] for n in kernels}
-        tile_flow = None if drift is None else (top.op("Slice", drift, starts, ends, "axes_hw"), flow[1])
+        tile_flow = None if drift is None else (drift, flow[1])
         tile_slopes = None if slopes is None else {n: slopes[n][k] for n in slopes}
-        then = _tile(b, k, window, tile_kernels, tile_flow, scales, source_masks[k], cfg, contract, plan, fp16, rows, margins, tile_slopes)
+        then = _tile(b, k, cut, tile_kernels, tile_flow, scales, source_masks[k], cfg, contract, plan, fp16, rows, margins, tile_slopes)
         b.count += 10_000  # branch-local names stay unique across branches
-        other = _passthrough(b, k, window, source_masks[k], contract.normalization)
+        other = _idle(b, k, win)
         b.count += 10_000
         placed.append(top.op("If", cond, then_branch=then, else_branch=other))  # (1, B 18 win^2)
-    # overlap-add of the windows in one pass: (T, B, 3, 6, win, win) -> (B, 18 win^2, T) -> Col2Im
-    stacked = top.op("Concat", *placed, axis=0) if len(placed) > 1 else placed[0]  # (T, B 18 win^2)
-    stacked = top.op("Reshape", stacked, b.const("acc_shape", [n_t, -1, 3, 6, win, win], np.int64))
-    cols_ = top.op("Reshape", top.op("Transpose", stacked, perm=[1, 2, 3, 4, 5, 0]),
-                   b.const("cols_shape", [0, 18 * win * win, n_t], np.int64))
-    total = top.op("Col2Im", cols_, b.const("canvas_hw", [hp, wp], np.int64), b.const("block_hw", [win, win], np.int64),
-                   strides=[t, t])
-    canvas = top.op("Slice", total, b.const("crop_start", [t_o, t_o], np.int64), b.const("crop_end", [t_o + h, t_o + w], np.int64),
-                    "axes_hw")
-    linear = _composite_buckets(top, canvas, x, cfg, contract, plan, fill_gain, surface_share)
-    shifted = top.op("Add", linear, b.const("offset", float(contract.normalization.offset)))
-    scale = b.const("scale", float(contract.normalization.scale))
-    top.nodes.append(helper.make_node("Div", [top.op("Sub", shifted, scale), top.op("Add", shifted, scale)], ["defocus"],
-                                      name="encode"))
+    # each core of the output from the windows that reach it (_core): no frame-wide overlap-add
+    accs = [top.op("Reshape", p, b.const("acc4_shape", [-1, 18, win, win], np.int64)) for p in placed]
+    fill = fill_inputs(top, x, cfg, contract, plan, surface_share)
+    strips = []
+    for i in range(layout.rows):
+        cores = [_core(top, layout, i * layout.cols + j, accs, x, fill, cfg, contract, fill_gain, surface_share)
+                 for j in range(layout.cols)]
+        strips.append(cores[0] if len(cores) == 1 else top.op("Concat", *cores, axis=3))
+    frame = strips[0] if len(strips) == 1 else top.op("Concat", *strips, axis=2)
+    top.nodes.append(helper.make_node("Identity", [frame], ["defocus"], name="defocus"))
     if plan.blocks != cfg.blocks:
         raise ValueError(f"the plan has {plan.blocks} bands, the network {cfg.blocks}")
     extra = [helper.make_tensor_value_info("band_active", TensorProto.BOOL, [n_t, max(plan.blocks, 1), 2])]
