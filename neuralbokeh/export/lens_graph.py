@@ -546,14 +546,16 @@ def _core(top: Nodes, layout: Any, k: int, accs: list[str], x: str, fill: tuple[
     cols = core_cells(j, layout.cols, c0, c1, layout.core, layout.overlap)
     g = Nodes(GraphBuilder(top.b.count), f"c{k}")
     axes = g.c("axes_hw", [2, 3], np.int64)
+    # the windows that reach the core, (index, origin) along each axis
+    row_windows, col_windows = (sorted({w for _, _, over in cells for w in over}) for cells in (rows, cols))
     terms: dict[tuple[int, int], list[str]] = {}
-    for m in sorted({m for _, _, o in rows for m, _ in o}):
-        for n in sorted({n for _, _, o in cols for n, _ in o}):
-            cells = [(a, e) for a, (_, _, o) in enumerate(rows) if m in dict(o) for e, (_, _, oc) in enumerate(cols) if n in dict(oc)]
+    for m, oy in row_windows:
+        for n, ox in col_windows:
+            cells = [(a, e) for a, (_, _, over) in enumerate(rows) if (m, oy) in over
+                     for e, (_, _, over_c) in enumerate(cols) if (n, ox) in over_c]
             spans = [(rows[a][0], rows[a][1], cols[e][0], cols[e][1]) for a, e in cells]
-            origin = (dict(rows[cells[0][0]][2])[m], dict(cols[cells[0][1]][2])[n])
             idx = m * layout.cols + n
-            for cell, light in zip(cells, _window_light(g, k, idx, origin, spans, accs[idx], x, (r0, r1, c0, c1), contract)):
+            for cell, light in zip(cells, _window_light(g, k, idx, (oy, ox), spans, accs[idx], x, (r0, r1, c0, c1), contract)):
                 terms.setdefault(cell, []).append(light)
     strips = []
     for a in range(len(rows)):
@@ -574,12 +576,11 @@ def _core(top: Nodes, layout: Any, k: int, accs: list[str], x: str, fill: tuple[
     b = top.b
     b.count = rest.b.count + 1
     reach = [top.op("Gather", "tile_active", b.const(f"t{m * layout.cols + n}.index", m * layout.cols + n, np.int64))
-             for m in sorted({m for _, _, o in rows for m, _ in o}) for n in sorted({n for _, _, o in cols for n, _ in o})]
+             for m, _ in row_windows for n, _ in col_windows]
     cond = reach[0]
     for r in reach[1:]:
         cond = top.op("Or", cond, r)
-    out = top.op("If", cond, then_branch=then, else_branch=other)
-    return out
+    return top.op("If", cond, then_branch=then, else_branch=other)
 
 
 def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: ModelConfig, contract: Contract,
