@@ -189,13 +189,14 @@ def test_graph_fill_is_the_hidden_background(h, w, c_max):
     contract = Contract(h, w, norm, c_max, c_max)
     g = Nodes(GraphBuilder(), "g")
     radius = int(np.ceil(c_max / 2))
-    out, keep, _ = hidden_background_graph(g, "x", contract, radius)
-    graph = helper.make_graph(g.nodes, "fill", [helper.make_tensor_value_info("x", TensorProto.FLOAT, [2, 4, h, w])],
+    out, keep, _ = hidden_background_graph(g, "aif", "coc", contract, radius)
+    inputs = [helper.make_tensor_value_info(n, TensorProto.FLOAT, [2, c, h, w]) for n, c in (("aif", 3), ("coc", 1))]
+    graph = helper.make_graph(g.nodes, "fill", inputs,
                               [helper.make_tensor_value_info(o, TensorProto.FLOAT, None) for o in (out, keep)], g.b.initializers)
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)])
     model.ir_version = 9
     x = torch.cat([norm.encode(rgb), coc / c_max], 1).float().numpy()
-    got, got_keep = make_session(model.SerializeToString(), threads=1).run(None, {"x": x})
+    got, got_keep = make_session(model.SerializeToString(), threads=1).run(None, {"aif": x[:, :3], "coc": x[:, 3:]})
     coc_px = torch.from_numpy(x[:, 3:]).double() * c_max
     want = hidden_background(norm.decode(torch.from_numpy(x[:, :3]).double()), coc_px, radius_px=radius)
     assert h * w == 1 or float((want - rgb).abs().max()) > 0.1  # the occluders were filled

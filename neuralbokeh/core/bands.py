@@ -137,17 +137,35 @@ def hermite_weights(pos: Any, n: int) -> tuple[Any, Any]:
     return value, slope
 
 
-def active_bands(coc_px: np.ndarray, plan: BandPlan, layout: TileLayout) -> np.ndarray:
+def active_bands(coc_px: np.ndarray, plan: BandPlan, layout: TileLayout, tiles: np.ndarray | None = None) -> np.ndarray:
     """``(tiles, N, 2)`` bool: whether any pixel that tile ``k`` scatters (its core, out to the
     window's edge on image-border sides) has a non-zero gate in band ``n = 1..N`` on side ``s``
     (0 behind the focus plane, 1 in front), in any image of the batch ``coc_px`` ``(B, H, W)``
     (signed px). A superset by 1e-3 of a band at the band edges, where float32 may round the
-    network's gate either way."""
+    network's gate either way. ``tiles`` ``(tiles,)`` bool: only these are looked at (the others
+    come back all False), so the work is the area of the tiles that run."""
     blocks = plan.blocks
     _, height, width = coc_px.shape
     flags = np.zeros((layout.num_tiles, max(blocks, 1), 2), dtype=bool)
     if blocks == 0:
         return flags
+    span = blocks + 2
+    for k in range(layout.num_tiles) if tiles is None else np.flatnonzero(tiles):
+        r0, r1, c0, c1 = layout.source_region(int(k), height, width)
+        c = np.asarray(coc_px[:, r0:r1, c0:c1], dtype=np.float32).ravel()
+        pos = plan.position(c)
+        # 2 span: scatters nothing beyond band 0 (|c| <= 1 px gives position 0, where every band's
+        # hat is 0; 1e-4 px of margin for the model's float32 CoC)
+        side = np.where(c < 0, np.int32(span), np.int32(0))
+        side[np.abs(c) < POINT_PX - 1e-4] = 2 * span  # (4x faster than a nested np.where at 1080p)
+        # bands lo and lo + 1 around each pixel's band position, and one more where it sits within
+        # 1e-3 of a band centre: a superset of the non-zero hats
+        lo = side + np.floor(np.maximum(pos - 1e-3, 0.0)).astype(np.int32)
+        hi = side + np.floor(pos + 1e-3).astype(np.int32) + 1
+        seen_lo = np.bincount(lo, minlength=3 * span)
+        seen = seen_lo + np.roll(seen_lo, 1) + np.bincount(hi, minlength=3 * span + 1)[: 3 * span]
+        flags[k] = (seen[: 2 * span].reshape(2, span)[:, 1 : blocks + 1] > 0).T
+    return flags
     c = np.asarray(coc_px, dtype=np.float32)
     pos = plan.position(c)
     span = blocks + 2

@@ -46,11 +46,25 @@ class Normalization:
         """Linear HDR (finite, >= -offset; array or tensor of any shape) -> [-1, 1)."""
         check_at_least("linear colour", x, -self.offset)
         shifted = x + self.offset
+        if isinstance(shifted, np.ndarray):  # the same operations in place: 2 image temporaries, not 4
+            out = shifted - self.scale
+            shifted += self.scale
+            out /= shifted
+            return out
         return (shifted - self.scale) / (shifted + self.scale)
 
     def decode(self, n: Any) -> Any:
         """[-1, 1) -> linear HDR; the exact inverse of :meth:`encode`."""
         arr = n if (is_tensor(n) or isinstance(n, np.ndarray)) else np.asarray(n, dtype=np.float64)
+        if isinstance(arr, np.ndarray):  # two reductions, then the same operations in place
+            lo, hi = arr.min(), arr.max()
+            if not (lo >= -1.0 and hi < 1.0):
+                raise ValueError(f"normalised colour must be in [-1, 1), got values in [{float(lo)}, {float(hi)}]")
+            out = 1.0 + arr
+            out *= self.scale
+            out /= 1.0 - arr
+            out -= self.offset
+            return out
         bad = ~((arr >= -1.0) & (arr < 1.0))
         if bool(bad.any()):
             raise ValueError(f"normalised colour must be in [-1, 1), got values in [{float(arr.min())}, {float(arr.max())}]")

@@ -117,33 +117,41 @@ def _branch(g: Nodes, result: str, name: str) -> onnx.GraphProto:
     return helper.make_graph(g.nodes, name, [], [_out(final)], g.b.initializers)
 
 
-def hidden_background_graph(top: Nodes, x: str, contract: Contract, r: int) -> tuple[str, str | None, str]:
-    """``(B, 3, H, W)`` linear estimate of what foregrounds hide, ``(B, 1, H, W)`` float, 1 where
-    a pixel hides nothing (None: no pixel hides anything), and the estimate's bound on a visible
-    pixel's own colour (``ops.holes.hidden_estimate``), as ``LensBokeh.hidden``:
+class FillParts(NamedTuple):
+    """What the fill computes once per frame (:func:`hidden_parts`); each core takes its own part
+    of the rest (:func:`core_fill`)."""
+
+    rgb: str  # (B, 3, H, W) linear light
+    keep: str | None  # (B, 1, H, W) float, 0 on the pixels that hide something; None: nothing can hide anything
+    masked: str | None  # (B, 3, H, W) the log of the light where keep is 1, else 0
+    filled: str | None  # the pull-push's level 1, filled, (B, 3, 2^(L-1), 2^(L-1)); None: a one-pixel frame
+
+
+def hidden_parts(top: Nodes, colour: str, coc: str, contract: Contract, r: int) -> FillParts:
+    """The frame-wide part of ``ops.holes.hidden_estimate`` on the network's input, its
+    normalised ``colour`` ``(B, 3, H, W)`` and ``coc`` ``(B, 1, H, W)`` (as ``LensBokeh.hidden``):
     occluders by a separable max over ``2r + 1`` px (``r``: the plan's ``fill_radius_px``), then
-    (:func:`neuralbokeh.ops.holes.hidden_background`) the pull-push fill of the log of the light
-    on the zero-padded ``2^L`` square (``AveragePool`` 2x2, ``Resize`` x2 half-pixel), whose
-    level 0 is never padded nor upsampled beyond the image (the same values, ~2x less work at
-    1080p), and each visible pixel's own colour clamped by its 3 x 3 geometric mean."""
+    the pull-push fill of the log of the light on the zero-padded ``2^L`` square (``AveragePool``
+    2x2), down to its level 1 filled; level 0, the upsampling to it and the bound are per pixel
+    and left to :func:`core_fill`."""
     h, w = contract.size
-    _, rgb = _linear_rgb(top, x, contract.normalization)
-    coc = top.op("Mul", top.op("Slice", x, top.c("bg.s3", [3], np.int64), top.c("bg.s4", [4], np.int64), top.c("bg.ax1", [1], np.int64)),
-                 top.c("bg.coc_scale", float(contract.coc_scale_px)))
+    rgb = _decode(top, colour, contract.normalization)
     if r == 0:
-        return rgb, None, rgb  # nothing can hide anything: the fill is the AIF itself
+        return FillParts(rgb, None, None, None)  # nothing can hide anything: the fill is the AIF itself
+    coc = top.op("Mul", coc, top.c("bg.coc_scale", float(contract.coc_scale_px)))
     far = window_max(top, window_max(top, coc, r, 3, w), r, 2, h)  # rows, then columns (as ops.holes.occluders)
     hide = top.op("Less", coc, top.op("Sub", far, top.c("bg.jump", JUMP_PX)))
     near = window_max(top, window_max(top, coc, 1, 3, w), 1, 2, h)  # the 3 x 3 neighbours
     hide = top.op("Or", hide, top.op("Less", coc, top.op("Sub", near, top.c("bg.step", STEP_PX))))
     keep = top.op("Cast", top.op("Not", hide), to=TensorProto.FLOAT)
     log_rgb = top.op("Log", top.op("Add", top.op("Max", rgb, top.c("bg.zero", 0.0)), top.c("bg.log_offset", LOG_OFFSET)))
+    masked = top.op("Mul", log_rgb, keep)
     # the pyramid of push_pull_fill on the zero-padded 2^L square, with level 0 left unpadded:
     # its 2x2 means over the padding are 0 with weight 0, as padding level 1 with zeros gives
     side = 1 << pyramid_levels(h, w)
     if side < 2:
-        return rgb, keep, rgb  # one pixel: nothing stands in front of anything
-    image, weight = _pull(top, log_rgb, keep, [0, 0, h % 2, w % 2])
+        return FillParts(rgb, keep, masked, None)  # one pixel: nothing stands in front of anything
+    image, weight = _pull(top, masked, keep, [0, 0, h % 2, w % 2], premultiplied=True)
     pads = top.c("bg.pads", [0, 0, 0, 0, 0, 0, side // 2 - (h + 1) // 2, side // 2 - (w + 1) // 2], np.int64)
     image, weight = top.op("Pad", image, pads), top.op("Pad", weight, pads)
     levels = []
@@ -156,31 +164,83 @@ def hidden_background_graph(top: Nodes, x: str, contract: Contract, r: int) -> t
     for image, weight in reversed(levels):  # push: fill each level from the next coarser one
         filled = top.op("Add", top.op("Mul", weight, image), top.op("Mul", top.op("Sub", top.c("bg.one", 1.0), weight),
                                                                       _upsample2(top, filled)))
-    # level 0 needs rows < h of the x2 upsampling: those read level 1's rows <= h // 2 only
-    need = top.c("bg.need", [min(h // 2 + 1, side // 2), min(w // 2 + 1, side // 2)], np.int64)
-    up = _upsample2(top, top.op("Slice", filled, top.c("bg.start", [0, 0], np.int64), need, top.c("bg.axes", [2, 3], np.int64)))
-    up = top.op("Slice", up, top.c("bg.start", [0, 0], np.int64), top.c("bg.end", [h, w], np.int64), top.c("bg.axes", [2, 3], np.int64))
-    behind = top.op("Sub", top.op("Exp", up), top.c("bg.log_offset", LOG_OFFSET))
+    return FillParts(rgb, keep, masked, filled)
+
+
+def core_fill(g: Nodes, parts: FillParts, region: tuple[int, int, int, int], size: tuple[int, int],
+              surface: bool) -> tuple[str, str | None, str]:
+    """The fill's inputs over the image rows ``[r0, r1)`` and columns ``[c0, c1)`` (``region``)
+    of an ``size`` = (H, W) frame, from its :func:`hidden_parts`: the hidden-background estimate
+    ``(B, 3, h, w)`` (level 0 of the pull-push: level 1 upsampled x2, half-pixel, from the level-1
+    pixels this region reads; each visible pixel's own colour clamped by its 3 x 3 geometric mean),
+    with ``surface`` 1 where the surface fill may use a pixel's own light ``(B, 1, h, w)`` (no pixel
+    within ``SILHOUETTE_PX`` hides anything; else None) and the bound on a visible pixel's own
+    colour. The same values as over the whole frame: each neighbourhood is cut with its halo, and
+    padded only where the frame ends."""
+    r0, r1, c0, c1 = region
+    h, w = size
+
+    def cut(t: str, a0: int, a1: int, b0: int, b1: int) -> str:
+        return g.op("Slice", t, g.c(f"fill.at{a0}_{b0}", [a0, b0], np.int64), g.c(f"fill.to{a1}_{b1}", [a1, b1], np.int64),
+                    g.c("fill.axes", [2, 3], np.int64))
+
+    rgb = cut(parts.rgb, r0, r1, c0, c1)
+    if parts.keep is None or parts.filled is None:
+        return rgb, (cut(parts.keep, r0, r1, c0, c1) if surface and parts.keep is not None else None), rgb
+    # level 0's rows [r0, r1) read level 1's rows r0 // 2 - 1 .. r1 // 2 (x2 half-pixel upsampling)
+    half = (1 << pyramid_levels(h, w)) // 2
+    y0, x0 = max(r0 // 2 - 1, 0), max(c0 // 2 - 1, 0)
+    up = _upsample2(g, cut(parts.filled, y0, min(r1 // 2 + 1, half), x0, min(c1 // 2 + 1, half)))
+    up = cut(up, r0 - 2 * y0, r1 - 2 * y0, c0 - 2 * x0, c1 - 2 * x0)
+    behind = g.op("Sub", g.op("Exp", up), g.c("fill.log_offset", LOG_OFFSET))
     # visible pixels: their own colour, at most OUTLIER_RATIO x the geometric mean of their visible 3 x 3
     # (count_include_pad=0 divides both sums by the same count: their ratio is the mean over visible pixels)
-    num = top.op("AveragePool", top.op("Mul", log_rgb, keep), kernel_shape=[3, 3], pads=[1, 1, 1, 1], count_include_pad=0)
-    den = top.op("AveragePool", keep, kernel_shape=[3, 3], pads=[1, 1, 1, 1], count_include_pad=0)
-    level = top.op("Exp", top.op("Div", num, top.op("Max", den, top.c("bg.tiny", 1e-12))))
-    bound = top.op("Sub", top.op("Mul", level, top.c("bg.outlier", OUTLIER_RATIO)), top.c("bg.log_offset", LOG_OFFSET))
-    own = top.op("Min", rgb, bound)
-    return top.op("Add", top.op("Mul", keep, own), top.op("Mul", top.op("Sub", top.c("bg.one", 1.0), keep), behind)), keep, bound
+    lo_r, hi_r, lo_c, hi_c = max(r0 - 1, 0), min(r1 + 1, h), max(c0 - 1, 0), min(c1 + 1, w)
+    pads = [1 - (r0 - lo_r), 1 - (c0 - lo_c), 1 - (hi_r - r1), 1 - (hi_c - c1)]  # 1 only where the frame ends
+    num = g.op("AveragePool", cut(parts.masked, lo_r, hi_r, lo_c, hi_c), kernel_shape=[3, 3], pads=pads, count_include_pad=0)
+    den = g.op("AveragePool", cut(parts.keep, lo_r, hi_r, lo_c, hi_c), kernel_shape=[3, 3], pads=pads, count_include_pad=0)
+    level = g.op("Exp", g.op("Div", num, g.op("Max", den, g.c("fill.tiny", 1e-12))))
+    bound = g.op("Sub", g.op("Mul", level, g.c("fill.outlier", OUTLIER_RATIO)), g.c("fill.log_offset", LOG_OFFSET))
+    visible = g.op("Cast", cut(parts.keep, r0, r1, c0, c1), to=TensorProto.BOOL)
+    background = g.op("Where", visible, g.op("Min", rgb, bound), behind)
+    if not surface:
+        return background, None, bound
+    # 1 - the max over the square of (1 - keep), from the square's pixels in the frame
+    s_px = SILHOUETTE_PX
+    lo_r, hi_r, lo_c, hi_c = max(r0 - s_px, 0), min(r1 + s_px, h), max(c0 - s_px, 0), min(c1 + s_px, w)
+    one = g.c("fill.one", 1.0)
+    hidden = g.op("Sub", one, cut(parts.keep, lo_r, hi_r, lo_c, hi_c))
+    rows = window_max(g, hidden, s_px, 3, hi_c - lo_c, (s_px - (c0 - lo_c), s_px - (hi_c - c1)))
+    beside = window_max(g, rows, s_px, 2, hi_r - lo_r, (s_px - (r0 - lo_r), s_px - (hi_r - r1)))
+    return background, g.op("Sub", one, beside), bound
 
 
-def window_max(g: Nodes, x: str, r: int, axis: int, size: int) -> str:
+def hidden_background_graph(top: Nodes, colour: str, coc: str, contract: Contract, r: int) -> tuple[str, str | None, str]:
+    """``(B, 3, H, W)`` linear estimate of what foregrounds hide, ``(B, 1, H, W)`` float, 1 where
+    a pixel hides nothing (None: no pixel hides anything), and the estimate's bound on a visible
+    pixel's own colour (``ops.holes.hidden_estimate``) over the whole frame: :func:`hidden_parts`
+    and :func:`core_fill` of all of it."""
+    h, w = contract.size
+    parts = hidden_parts(top, colour, coc, contract, r)
+    background, _, bound = core_fill(top, parts, (0, h, 0, w), (h, w), False)
+    return background, parts.keep, bound
+
+
+def window_max(g: Nodes, x: str, r: int, axis: int, size: int, pads: tuple[int, int] | None = None) -> str:
     """The max of ``x`` over ``[i - r, i + r]`` along ``axis`` (2 or 3, ``size`` long), nothing
     beyond the edges: as ``MaxPool`` with a ``2r + 1`` window and ``r`` of padding, exactly, but
     as ``log2(2r + 1)`` maxima of two shifted ``Slice``s (-inf padded): ``m[i]`` holds the max of
     ``x[i .. i + span - 1]``, doubled until ``span`` reaches ``2r + 1``. ~3x faster on CPU at
-    r = 21 (onnxruntime's ``MaxPool`` reads the whole window for every pixel)."""
-    pads = [0] * 8
-    pads[axis] = pads[4 + axis] = r
-    cur = g.op("Pad", x, g.c(f"wm.pads{axis}_{r}", pads, np.int64), g.c("wm.ninf", -np.inf), mode="constant")
-    length, span, k = size + 2 * r, 1, 2 * r + 1
+    r = 21 (onnxruntime's ``MaxPool`` reads the whole window for every pixel). ``pads``: the
+    -inf padding before and after (default ``(r, r)``; less where ``x`` carries its own halo),
+    so the result is ``size + sum(pads) - 2r`` long."""
+    before, after = (r, r) if pads is None else pads
+    cur = x
+    if before or after:
+        p = [0] * 8
+        p[axis], p[4 + axis] = before, after
+        cur = g.op("Pad", x, g.c(f"wm.pads{axis}_{before}_{after}", p, np.int64), g.c("wm.ninf", -np.inf), mode="constant")
+    length, span, k = size + before + after, 1, 2 * r + 1
     ax = g.c(f"wm.ax{axis}", [axis], np.int64)
     while span < k:
         shift = min(span, k - span)  # the last step overlaps the window already covered
@@ -195,11 +255,13 @@ def _cut(g: Nodes, source: str, starts: str, ends: str) -> str:
     return g.op("Slice", source, starts, ends, g.c("axes_hw", [2, 3], np.int64))
 
 
-def _pull(g: Nodes, image: str, weight: str, pads: list[int]) -> tuple[str, str]:
+def _pull(g: Nodes, image: str, weight: str, pads: list[int], premultiplied: bool = False) -> tuple[str, str]:
     """One pull step of :func:`neuralbokeh.ops.holes.push_pull_fill`: weight-normalised 2x2
-    means and their weight (4 x the mean weight, at most 1); ``pads`` (end side) zero-pads."""
+    means and their weight (4 x the mean weight, at most 1); ``pads`` (end side) zero-pads;
+    ``premultiplied``: ``image`` is image x weight already."""
     w_small = g.op("AveragePool", weight, kernel_shape=[2, 2], strides=[2, 2], pads=pads, count_include_pad=1)
-    c_small = g.op("Div", g.op("AveragePool", g.op("Mul", image, weight), kernel_shape=[2, 2], strides=[2, 2], pads=pads,
+    product = image if premultiplied else g.op("Mul", image, weight)
+    c_small = g.op("Div", g.op("AveragePool", product, kernel_shape=[2, 2], strides=[2, 2], pads=pads,
                                count_include_pad=1), g.op("Max", w_small, g.c("bg.tiny", 1e-12)))
     return c_small, g.op("Min", g.op("Mul", w_small, g.c("bg.four", 4.0)), g.c("bg.one", 1.0))
 
@@ -212,11 +274,15 @@ def _upsample2(g: Nodes, x: str) -> str:
 def _linear_rgb(g: Nodes, window: str, norm: Normalization) -> tuple[str, str]:
     """``(normalised RGB, linear RGB)`` of a window ``(B, 4, win, win)``: the exact inverse of
     the normalisation, ``x = s (1 + n) / (1 - n) - o``."""
-    one = g.c("one", 1.0)
     norm_rgb = g.op("Slice", window, g.c("s0", [0], np.int64), g.c("s3", [3], np.int64), g.c("ax1", [1], np.int64))
-    rgb = g.op("Sub", g.op("Div", g.op("Mul", g.c("scale", norm.scale), g.op("Add", one, norm_rgb)),
-                           g.op("Sub", one, norm_rgb)), g.c("offset", norm.offset))
-    return norm_rgb, rgb
+    return norm_rgb, _decode(g, norm_rgb, norm)
+
+
+def _decode(g: Nodes, norm_rgb: str, norm: Normalization) -> str:
+    """Linear RGB of normalised RGB: the exact inverse of the normalisation, ``x = s (1 + n) / (1 - n) - o``."""
+    one = g.c("one", 1.0)
+    return g.op("Sub", g.op("Div", g.op("Mul", g.c("scale", norm.scale), g.op("Add", one, norm_rgb)),
+                            g.op("Sub", one, norm_rgb)), g.c("offset", norm.offset))
 
 
 def conv_rows(g: Nodes, feats: str, weights: np.ndarray, size: int, fp16: bool) -> str:
@@ -388,8 +454,10 @@ def _idle(b: GraphBuilder, k: int, win: int) -> onnx.GraphProto:
 
 
 def _multi_branch(g: Nodes, results: list[str], name: str) -> onnx.GraphProto:
-    """A branch of ``g``'s nodes with several outputs."""
-    finals = [g.op("Identity", r) for r in results]
+    """A branch of ``g``'s nodes with several outputs (an ``Identity`` only for a result the
+    branch does not compute itself: onnxruntime copies a tensor there)."""
+    made = {o for node in g.nodes for o in node.output}
+    finals = [r if r in made and r not in results[:i] else g.op("Identity", r) for i, r in enumerate(results)]
     return helper.make_graph(g.nodes, name, [], [_out(f) for f in finals], g.b.initializers)
 
 
@@ -446,26 +514,19 @@ def _surface_filled(g: Nodes, background: str, keep: str | None, bound: str, col
     return g.op("Add", background, g.op("Mul", weight, g.op("Sub", own, background)))
 
 
-def fill_inputs(top: Nodes, x: str, cfg: ModelConfig, contract: Contract, plan: BandPlan,
-                surface_share: float | None) -> tuple[str, str | None, str] | None:
-    """The frame-wide inputs of the fill, as ``LensBokeh.hidden``: the hidden-background estimate
-    ``(B, 3, H, W)``, 1 where the surface fill may use a pixel's own light ``(B, 1, H, W)``
-    (None: everywhere) and the bound on a visible pixel's own colour; None for ``fill =
-    "normalize"``. The pull-push and the silhouettes' reach are not local: they are computed
-    once, over the whole frame, and each core reads its part."""
+def fill_inputs(top: Nodes, cfg: ModelConfig, contract: Contract, plan: BandPlan,
+                surface_share: float | None) -> FillParts | None:
+    """The frame-wide part of the fill (:func:`hidden_parts`, as ``LensBokeh.hidden``), under an
+    ``If``: only a core that a running window reaches reads the fill, so with no tile running it
+    is not computed. None for ``fill = "normalize"``. Each core computes its own part of the
+    rest (:func:`core_fill`)."""
     if (surface_share is not None) != (cfg.surface_fill and cfg.fill != "normalize"):
         raise ValueError(f"model.surface_fill is {cfg.surface_fill} with fill {cfg.fill!r}: its share is needed there and only there")
     if cfg.fill == "normalize":
         return None
     g = Nodes(GraphBuilder(top.b.count), "fill")
-    background, keep, bound = hidden_background_graph(g, x, contract, plan.fill_radius_px)
-    if surface_share is not None and keep is not None:  # 1 - the max over the square of (1 - keep)
-        one = g.c("surface_one", 1.0)
-        h, w = contract.size
-        beside = window_max(g, window_max(g, g.op("Sub", one, keep), SILHOUETTE_PX, 3, w), SILHOUETTE_PX, 2, h)
-        keep = g.op("Sub", one, beside)
-    # only a core that a running window reaches reads the fill: with no tile running it is not computed
-    results = [background, bound] if keep is None else [background, bound, keep]
+    parts = hidden_parts(g, "aif", "coc", contract, plan.fill_radius_px)
+    results = [t for t in parts if t is not None]
     then = _multi_branch(g, results, "fill")
     none = Nodes(GraphBuilder(g.b.count), "fill.none")
     other = _multi_branch(none, [none.c("zero", 0.0) for _ in results], "fill_none")
@@ -473,7 +534,8 @@ def fill_inputs(top: Nodes, x: str, cfg: ModelConfig, contract: Contract, plan: 
     anyone = top.op("Cast", top.op("ReduceMax", top.op("Cast", "tile_active", to=TensorProto.INT32), keepdims=0), to=TensorProto.BOOL)
     outs = [top.b.fresh("g.fill") for _ in results]
     top.nodes.append(helper.make_node("If", [anyone], outs, name=outs[0], then_branch=then, else_branch=other))
-    return outs[0], None if keep is None else outs[2], outs[1]
+    given = iter(outs)
+    return FillParts(*(None if t is None else next(given) for t in parts))
 
 
 def _composite_buckets(g: Nodes, canvas: str, cfg: ModelConfig, fill: tuple[str, str | None, str] | None,
@@ -531,7 +593,7 @@ def core_cells(i: int, n: int, start: int, end: int, core: int, overlap: int) ->
     return [(u, v, [(m, o) for m, o in near if o <= u and v <= o + core + 2 * overlap]) for u, v in zip(cuts, cuts[1:])]
 
 
-def _core(top: Nodes, layout: Any, k: int, accs: list[str], x: str, fill: tuple[str, str | None, str] | None,
+def _core(top: Nodes, layout: Any, k: int, accs: list[str], x: str, fill: FillParts | None,
           cfg: ModelConfig, contract: Contract, fill_gain: float | None, surface_share: float | None) -> str:
     """Core ``k`` of the output, normalised ``(B, 3, h_k, w_k)`` (its :meth:`TileLayout.source_region`): an ``If``
     on whether a window that reaches it ran. Then its light is the sum of those windows'
@@ -545,7 +607,6 @@ def _core(top: Nodes, layout: Any, k: int, accs: list[str], x: str, fill: tuple[
     rows = core_cells(i, layout.rows, r0, r1, layout.core, layout.overlap)
     cols = core_cells(j, layout.cols, c0, c1, layout.core, layout.overlap)
     g = Nodes(GraphBuilder(top.b.count), f"c{k}")
-    axes = g.c("axes_hw", [2, 3], np.int64)
     # the windows that reach the core, (index, origin) along each axis
     row_windows, col_windows = (sorted({w for _, _, over in cells for w in over}) for cells in (rows, cols))
     terms: dict[tuple[int, int], list[str]] = {}
@@ -562,8 +623,7 @@ def _core(top: Nodes, layout: Any, k: int, accs: list[str], x: str, fill: tuple[
         cells = [terms[a, e][0] if len(terms[a, e]) == 1 else g.op("Sum", *terms[a, e]) for e in range(len(cols))]
         strips.append(cells[0] if len(cells) == 1 else g.op("Concat", *cells, axis=3))
     canvas = strips[0] if len(strips) == 1 else g.op("Concat", *strips, axis=2)
-    start, stop = g.c("start", [r0, c0], np.int64), g.c("stop", [r1, c1], np.int64)
-    part = None if fill is None else tuple(None if f is None else g.op("Slice", f, start, stop, axes) for f in fill)
+    part = None if fill is None else core_fill(g, fill, (r0, r1, c0, c1), (h, w), surface_share is not None)
     linear = _composite_buckets(g, canvas, cfg, part, fill_gain, surface_share)
     shifted = g.op("Add", linear, g.c("offset", float(contract.normalization.offset)))
     scale = g.c("scale", float(contract.normalization.scale))
@@ -651,7 +711,7 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: Mod
         placed.append(top.op("If", cond, then_branch=then, else_branch=other))  # (1, B 18 win^2)
     # each core of the output from the windows that reach it (_core): no frame-wide overlap-add
     accs = [top.op("Reshape", p, b.const("acc4_shape", [-1, 18, win, win], np.int64)) for p in placed]
-    fill = fill_inputs(top, x, cfg, contract, plan, surface_share)
+    fill = fill_inputs(top, cfg, contract, plan, surface_share)
     strips = []
     for i in range(layout.rows):
         cores = [_core(top, layout, i * layout.cols + j, accs, x, fill, cfg, contract, fill_gain, surface_share)

@@ -183,22 +183,25 @@ class OnnxBokeh:
         the batch ``(B, H, W)`` (all true when skipping is off)."""
         if not self.skip_in_focus:
             return np.ones(self.num_tiles, dtype=bool)
-        padded = self.layout.pad_image(np.abs(coc_px).max(axis=0), self.height, self.width)
+        size = np.abs(coc_px).max(axis=0)
+        top, _, left, _ = self.layout.pads(self.height, self.width)
         win = self.layout.window
-        return np.array([padded[r : r + win, c : c + win].max() >= self.in_focus_px for _, r, c in self.layout.origins()],
-                        dtype=bool)
+        # a window's max over the edge-padded frame is its max over the frame: padding repeats edge pixels
+        return np.array([size[max(r - top, 0) : r - top + win, max(c - left, 0) : c - left + win].max() >= self.in_focus_px
+                         for _, r, c in self.layout.origins()], dtype=bool)
 
     def _band_plan(self) -> BandPlan:
         """The band plan the file was exported with (:func:`read_metadata` checks it is there)."""
         return BandPlan.from_dict(self.meta["band_plan"])
 
-    def active_bands(self, coc_px: np.ndarray) -> np.ndarray:
+    def active_bands(self, coc_px: np.ndarray, tiles: np.ndarray | None = None) -> np.ndarray:
         """``(tiles, N, 2)`` bool (lens models): the bands and sides each tile's pixels use in
         the batch ``coc_px`` ``(B, H, W)`` (:func:`neuralbokeh.core.bands.active_bands`, with the
-        file's plan); all true when skipping is off."""
+        file's plan), of the ``tiles`` ``(tiles,)`` bool only (default: all); all true when
+        skipping is off."""
         if not self.skip_in_focus:
             return np.ones((self.num_tiles, max(self.plan.blocks, 1), 2), dtype=bool)
-        return active_bands(coc_px, self.plan, self.layout)
+        return active_bands(coc_px, self.plan, self.layout, tiles)
 
     def _images(self, aif: np.ndarray) -> tuple[np.ndarray, bool]:
         a = np.asarray(aif)
@@ -232,8 +235,8 @@ class OnnxBokeh:
     def _run(self, aif: np.ndarray, coc_px: np.ndarray, clamp_coc: bool, batched: bool) -> np.ndarray:
         """``aif`` ``(B, 3, H, W)`` float32 linear RGB (checked), ``coc_px`` ``(B, H, W)``."""
         check_finite("CoC", coc_px, " px")
-        over = np.abs(coc_px) > self.contract.max_coc_px
-        if over.any():
+        if max(-float(coc_px.min()), float(coc_px.max())) > self.contract.max_coc_px:
+            over = np.abs(coc_px) > self.contract.max_coc_px
             where = format_location(np.unravel_index(int(np.argmax(np.abs(coc_px))), coc_px.shape)[1:])
             msg = (f"|CoC| up to {np.abs(coc_px).max():.3f} px at {where} ({int(over.sum())} pixels) exceeds the "
                    f"model's trained maximum of {self.contract.max_coc_px:.3f} px")
@@ -251,14 +254,14 @@ class OnnxBokeh:
             "tile_active": active,
         }
         if self.has_bands:
-            bands = self.active_bands(coc_px) & active[:, None, None]
+            bands = self.active_bands(coc_px, active) & active[:, None, None]
             # a lens tile scatters its core only: with no band to run it is its pass-through (exact)
             active = active & bands.any(axis=(1, 2))
             self.last_tiles_run = int(active.sum())
             feeds["tile_active"], feeds["band_active"] = active, bands
             self.last_bands_run = int(bands.sum())
         out = self.session.run(["defocus"], feeds)[0]
-        if not (out < 1.0).all():
+        if not out.max() < 1.0:
             where = format_location(np.unravel_index(int(np.argmax(out)), out.shape)[2:])
             raise ValueError(f"the model's output saturated (normalised value {out.max()} >= 1) at {where}")
         linear = np.ascontiguousarray(self.contract.output_linear(out).transpose(0, 2, 3, 1), dtype=np.float32)
