@@ -250,9 +250,13 @@ def window_max(g: Nodes, x: str, r: int, axis: int, size: int, pads: tuple[int, 
     return cur
 
 
-def _cut(g: Nodes, source: str, starts: str, ends: str) -> str:
-    """The window ``[starts, ends)`` (rows, columns) of ``source`` ``(B, C, H, W)``."""
-    return g.op("Slice", source, starts, ends, g.c("axes_hw", [2, 3], np.int64))
+def _cut(g: Nodes, source: str, window: tuple[str, str, str | None]) -> str:
+    """A tile's window of ``source`` ``(B, C, H, W)``: ``window`` = (its first and its end row and
+    column in the frame, clipped to it; the edge padding ``Pad`` adds where the window leaves the
+    frame, or None), as a cut of the frame edge-padded once, without padding all of it."""
+    starts, ends, edge = window
+    out = g.op("Slice", source, starts, ends, g.c("axes_hw", [2, 3], np.int64))
+    return out if edge is None else g.op("Pad", out, edge, mode="edge")
 
 
 def _pull(g: Nodes, image: str, weight: str, pads: list[int], premultiplied: bool = False) -> tuple[str, str]:
@@ -269,13 +273,6 @@ def _pull(g: Nodes, image: str, weight: str, pads: list[int], premultiplied: boo
 def _upsample2(g: Nodes, x: str) -> str:
     """x2 bilinear upsampling, half-pixel (``F.interpolate(scale_factor=2, align_corners=False)``)."""
     return g.op("Resize", x, "", g.c("bg.x2", [1.0, 1.0, 2.0, 2.0]), mode="linear", coordinate_transformation_mode="half_pixel")
-
-
-def _linear_rgb(g: Nodes, window: str, norm: Normalization) -> tuple[str, str]:
-    """``(normalised RGB, linear RGB)`` of a window ``(B, 4, win, win)``: the exact inverse of
-    the normalisation, ``x = s (1 + n) / (1 - n) - o``."""
-    norm_rgb = g.op("Slice", window, g.c("s0", [0], np.int64), g.c("s3", [3], np.int64), g.c("ax1", [1], np.int64))
-    return norm_rgb, _decode(g, norm_rgb, norm)
 
 
 def _decode(g: Nodes, norm_rgb: str, norm: Normalization) -> str:
@@ -380,24 +377,23 @@ def _band(b: GraphBuilder, k: int, n: int, side: int, pos: str, side_mask: str, 
     return _branch(g, g.op("Mul", weights, g.op("Unsqueeze", out, g.c("ax02", [0, 2], np.int64))), f"t{k}_band{n}_{side}")
 
 
-def _tile(b: GraphBuilder, k: int, cut: tuple[str, str, str], kernels: Mapping[int, np.ndarray],
+def _tile(b: GraphBuilder, k: int, cut: tuple[str, str, str | None], kernels: Mapping[int, np.ndarray],
           flow: tuple[str, Mapping[int, np.ndarray]] | None,
           scales: Mapping[int, int], src: np.ndarray, cfg: ModelConfig, contract: Contract, plan: BandPlan, fp16: bool,
           rows: bool, margins: Mapping[int, float], slopes: Mapping[int, np.ndarray] | None = None) -> onnx.GraphProto:
     """Then-branch: tile ``k``'s accumulators ``(B, 3, 6, win, win)``, flattened to ``(1, B 18 win^2)``,
-    from its window (``cut``: the padded input and the window's corners, cut here: a tile that
-    does not run cuts nothing); band ``n``, side ``s`` runs where ``band_active[k, n - 1, s]``. A
+    from its window of the inputs ``aif`` and ``coc`` (``cut``, :func:`_cut`: a tile that does not
+    run cuts nothing); band ``n``, side ``s`` runs where ``band_active[k, n - 1, s]``. A
     band that does not run gives an empty ``(0, B, 3, 6, win, win)``, so the sum over the bands
-    costs only the bands that ran. ``flow``: (the padded centroid drift ``(1, 6, H_p, W_p)``,
+    costs only the bands that ran. ``flow``: (the centroid drift ``(1, 6, H, W)``,
     ``{n: (2, 3)}`` the gains' slopes) or None (no drift). ``slopes``: ``{n: (2, 3,
     k, k)}`` the kernels' slopes (Hermite blend) or None (hat). ``margins``: ``{n: px}`` each
     band's occlusion margin."""
     g = Nodes(GraphBuilder(b.count), f"t{k}")
     blocks, diameters = plan.blocks, plan.diameters
     win = src.shape[-1]
-    window = _cut(g, *cut)
-    _, rgb = _linear_rgb(g, window, contract.normalization)
-    coc_in = g.op("Slice", window, g.c("s3", [3], np.int64), g.c("s4", [4], np.int64), g.c("ax1", [1], np.int64))
+    rgb = _decode(g, _cut(g, "aif", cut), contract.normalization)
+    coc_in = _cut(g, "coc", cut)
     one = g.c("one", 1.0)
     c = g.op("Mul", coc_in, g.c("coc_scale_px", float(contract.coc_scale_px)))
     src_mask = g.c("src", src[None, None])
@@ -418,7 +414,7 @@ def _tile(b: GraphBuilder, k: int, cut: tuple[str, str, str], kernels: Mapping[i
         behind = g.op("Cast", g.op("Greater", c, g.c("zero", 0.0)), to=TensorProto.FLOAT)
         front = g.op("Cast", g.op("Less", c, g.c("zero", 0.0)), to=TensorProto.FLOAT)
         flags = g.op("Gather", "band_active", g.c("index", k, np.int64))  # (N, 2) of this tile
-        drift = None if flow is None else _cut(g, flow[0], *cut[1:])
+        drift = None if flow is None else _cut(g, flow[0], cut)
         moved = None if flow is None else [
             g.op("Mul", rgb, g.op("Slice", drift, g.c(f"d{s}0", [3 * s], np.int64), g.c(f"d{s}1", [3 * s + 3], np.int64),
                                   g.c("ax1", [1], np.int64))) for s in range(2)]  # colour x drift, per side
@@ -471,11 +467,11 @@ def _cut_cells(g: Nodes, acc: str, origin: tuple[int, int], cells: list[tuple[in
 
 
 def _window_light(g: Nodes, k: int, idx: int, origin: tuple[int, int], cells: list[tuple[int, int, int, int]],
-                  acc: str, x: str, core: tuple[int, int, int, int], contract: Contract) -> list[str]:
+                  acc: str, core: tuple[int, int, int, int], contract: Contract) -> list[str]:
     """Window ``idx``'s accumulators ``(B, 18, h, w)`` on ``cells`` (image px ``(r0, r1, c0, c1)``) of
     core ``k`` (``core``), cut from its output ``acc`` ``(B, 18, win, win)`` (its top-left at image px ``origin``;
     zeros where the tile did not run). The core's own window is an ``If`` on ``tile_active[k]``:
-    where the tile did not run, its core of ``x`` ``(B, 4, H, W)`` as in-focus light (the same
+    where the tile did not run, its core of the input ``aif`` as in-focus light (the same
     bucket: colour and full cover), as the module's pass-through."""
     if idx != k:
         return _cut_cells(g, acc, origin, cells)
@@ -484,8 +480,8 @@ def _window_light(g: Nodes, k: int, idx: int, origin: tuple[int, int], cells: li
     off = Nodes(GraphBuilder(on.b.count), f"c{k}.own.off")
     y0, y1, x0, x1 = core
     axes = off.c("axes_hw", [2, 3], np.int64)
-    window = off.op("Slice", x, off.c("start", [y0, x0], np.int64), off.c("stop", [y1, x1], np.int64), axes)
-    norm_rgb, rgb = _linear_rgb(off, window, contract.normalization)
+    norm_rgb = off.op("Slice", "aif", off.c("start", [y0, x0], np.int64), off.c("stop", [y1, x1], np.int64), axes)
+    rgb = _decode(off, norm_rgb, contract.normalization)
     ones = off.op("Add", off.op("Mul", norm_rgb, off.c("zero", 0.0)), off.c("one", 1.0))
     zeros6 = off.op("Mul", off.op("Concat", rgb, rgb, axis=1), off.c("zero", 0.0))
     sharp = off.op("Concat", zeros6, rgb, ones, zeros6, axis=1)
@@ -593,7 +589,7 @@ def core_cells(i: int, n: int, start: int, end: int, core: int, overlap: int) ->
     return [(u, v, [(m, o) for m, o in near if o <= u and v <= o + core + 2 * overlap]) for u, v in zip(cuts, cuts[1:])]
 
 
-def _core(top: Nodes, layout: Any, k: int, accs: list[str], x: str, fill: FillParts | None,
+def _core(top: Nodes, layout: Any, k: int, accs: list[str], fill: FillParts | None,
           cfg: ModelConfig, contract: Contract, fill_gain: float | None, surface_share: float | None) -> str:
     """Core ``k`` of the output, normalised ``(B, 3, h_k, w_k)`` (its :meth:`TileLayout.source_region`): an ``If``
     on whether a window that reaches it ran. Then its light is the sum of those windows'
@@ -616,7 +612,7 @@ def _core(top: Nodes, layout: Any, k: int, accs: list[str], x: str, fill: FillPa
                      for e, (_, _, over_c) in enumerate(cols) if (n, ox) in over_c]
             spans = [(rows[a][0], rows[a][1], cols[e][0], cols[e][1]) for a, e in cells]
             idx = m * layout.cols + n
-            for cell, light in zip(cells, _window_light(g, k, idx, (oy, ox), spans, accs[idx], x, (r0, r1, c0, c1), contract)):
+            for cell, light in zip(cells, _window_light(g, k, idx, (oy, ox), spans, accs[idx], (r0, r1, c0, c1), contract)):
                 terms.setdefault(cell, []).append(light)
     strips = []
     for a in range(len(rows)):
@@ -686,20 +682,21 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: Mod
     win, n_t = layout.window, layout.num_tiles
     b = GraphBuilder()
     top = Nodes(b, "g")
-    x = top.op("Concat", "aif", "coc", axis=1)
-    pad_t, pad_b, pad_l, pad_r = layout.pads(h, w)
-    pads = b.const("pads", [0, 0, pad_t, pad_l, 0, 0, pad_b, pad_r], np.int64)
-    padded = top.op("Pad", x, pads, mode="edge")
+    pad_t, _, pad_l, _ = layout.pads(h, w)
     drift = None
-    if flow is not None:  # the drift at every pixel, rows (H, Gy) x nodes (6, Gy, Gx) x cols^T, padded as the input
+    if flow is not None:  # the drift at every pixel, rows (H, Gy) x nodes (6, Gy, Gx) x cols^T (each tile cuts its window, as the input's)
         nodes, rows_w, cols_w = flow[0]
         at_rows = top.op("MatMul", b.const("drift_rows", rows_w), b.const("drift_nodes", np.reshape(nodes, (6, *nodes.shape[-2:]))))
         full = top.op("MatMul", at_rows, b.const("drift_cols_t", np.transpose(cols_w)))  # (6, H, W)
-        drift = top.op("Pad", top.op("Unsqueeze", full, b.const("ax0", [0], np.int64)), pads, mode="edge")
+        drift = top.op("Unsqueeze", full, b.const("ax0", [0], np.int64))
     placed = []
     for k, r, c in layout.origins():
-        starts, ends = b.const(f"t{k}.starts", [r, c], np.int64), b.const(f"t{k}.ends", [r + win, c + win], np.int64)
-        cut = (padded, starts, ends)
+        y0, x0 = r - pad_t, c - pad_l  # the window in frame px; the edge pads it where it leaves the frame
+        top_e, left_e, bottom_e, right_e = max(-y0, 0), max(-x0, 0), max(y0 + win - h, 0), max(x0 + win - w, 0)
+        edge = [0, 0, top_e, left_e, 0, 0, bottom_e, right_e]
+        cut = (b.const(f"t{k}.starts", [y0 + top_e, x0 + left_e], np.int64),
+               b.const(f"t{k}.ends", [y0 + win - bottom_e, x0 + win - right_e], np.int64),
+               b.const(f"t{k}.edge", edge, np.int64) if any(edge) else None)
         cond = top.op("Gather", "tile_active", b.const(f"t{k}.index", k, np.int64))
         tile_kernels = {n: kernels[n][k] for n in kernels}
         tile_flow = None if drift is None else (drift, flow[1])
@@ -714,7 +711,7 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: Mod
     fill = fill_inputs(top, cfg, contract, plan, surface_share)
     strips = []
     for i in range(layout.rows):
-        cores = [_core(top, layout, i * layout.cols + j, accs, x, fill, cfg, contract, fill_gain, surface_share)
+        cores = [_core(top, layout, i * layout.cols + j, accs, fill, cfg, contract, fill_gain, surface_share)
                  for j in range(layout.cols)]
         strips.append(cores[0] if len(cores) == 1 else top.op("Concat", *cores, axis=3))
     frame = strips[0] if len(strips) == 1 else top.op("Concat", *strips, axis=2)
