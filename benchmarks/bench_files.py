@@ -2,6 +2,7 @@
 renders alternating.
 
     python benchmarks/bench_files.py A.onnx B.onnx [...] [--repeats 9] [--threads 2] [--seed 3]
+        [--first-runtime DIR]
 
 For comparing graphs that compute the same thing (an export of an earlier version of the
 builder against today's, or two export options): the frames are ``bench_runtime.py``'s
@@ -13,12 +14,17 @@ renders every file on every frame, so a drift of the machine's speed hits all al
 between frames included. Printed per frame: each file's median ms, its ratio to the first
 file, and the largest difference of its output from the first file's (linear light; float32
 rounding of the normalised output is ~3e-5 of a value near 1e2); then per file how much
-faster the lighter frames are than the full one, and the ramp than its third.
+faster the lighter frames are than the full one, and the ramp than its third. ``--first-runtime
+DIR`` renders the first file with the runtime of another checkout (e.g. ``git worktree add
+/tmp/before <commit>``), loaded beside this one, so that a change of the runtime's own numpy work
+is timed with its graph.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib
+import importlib.util
 import statistics
 import sys
 import time
@@ -36,6 +42,19 @@ from bench_runtime import _frames  # noqa: E402
 from neuralbokeh.runtime.onnx_model import OnnxBokeh  # noqa: E402
 
 
+def runtime_of(root: Path) -> type:
+    """The ``OnnxBokeh`` class of the checkout at ``root``, imported as the package ``bench_first``
+    (its runtime imports its own package relatively, so it runs that checkout's code throughout)."""
+    init = root / "neuralbokeh" / "__init__.py"
+    if not init.is_file():
+        raise SystemExit(f"error: no neuralbokeh checkout at {root} (no {init})")
+    spec = importlib.util.spec_from_file_location("bench_first", init, submodule_search_locations=[str(init.parent)])
+    package = importlib.util.module_from_spec(spec)
+    sys.modules["bench_first"] = package
+    spec.loader.exec_module(package)
+    return importlib.import_module("bench_first.runtime.onnx_model").OnnxBokeh
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("files", nargs="+", type=Path, help="exported .onnx files of one plate size")
@@ -43,12 +62,16 @@ def main() -> None:
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--seed", type=int, default=3)
     p.add_argument("--out-dir", type=Path, default=ROOT / "runs" / "bench_files")
+    p.add_argument("--first-runtime", type=Path, help="render the first file with the runtime of the checkout at this folder")
     args = p.parse_args()
     for f in args.files:
         if not f.is_file():
             raise SystemExit(f"error: no exported file at {f}")
     args.out_dir.mkdir(parents=True, exist_ok=True)
-    models = {f.name: OnnxBokeh(f, threads=args.threads) for f in args.files}
+    first_class = runtime_of(args.first_runtime) if args.first_runtime else OnnxBokeh
+    models = {f.name: (first_class if i == 0 else OnnxBokeh)(f, threads=args.threads) for i, f in enumerate(args.files)}
+    if len(models) != len(args.files):
+        raise SystemExit("error: give files of different names (they label the columns)")
     sizes = {(m.height, m.width) for m in models.values()}
     if len(sizes) != 1:
         raise SystemExit(f"error: the files are exported for different plate sizes {sorted(sizes)}; give files of one size")

@@ -138,3 +138,5 @@ def test_the_file_carries_the_plate_plan_and_the_runtime_plans_with_it(busy_chec
                 used = bool(((region > 0) & torch.from_numpy(sel)).any())
                 assert flags[k, n - 1, side] >= used, (n, k, side)
     assert flags.sum() < flags.size  # and something was left out
+    running = g.random(m.num_tiles) < 0.5  # the runtime asks only for the tiles that run
+    np.testing.assert_array_equal(active_bands(coc, want, m.layout, running), flags & running[:, None, None])

@@ -17,7 +17,16 @@ from neuralbokeh.core.contract import Contract
 from neuralbokeh.core.normalization import Normalization
 from neuralbokeh.export.exporter import calibration_inputs, export_checkpoint, probe_inputs, run_session
 from neuralbokeh.export.graph import GraphBuilder
-from neuralbokeh.export.lens_graph import LENS_DEFAULT_KERNELS, Nodes, conv_rows, core_cells, hidden_background_graph, window_max
+from neuralbokeh.export.lens_graph import (
+    LENS_DEFAULT_KERNELS,
+    Nodes,
+    conv_rows,
+    core_cells,
+    core_fill,
+    hidden_background_graph,
+    hidden_parts,
+    window_max,
+)
 from neuralbokeh.export.lowrank import cheaper_ranks, factorize, parse_kernels, reconstruct, relative_error
 from neuralbokeh.ops.holes import hidden_background, hidden_pixels
 from neuralbokeh.runtime.onnx_model import make_session
@@ -204,6 +213,40 @@ def test_graph_fill_is_the_hidden_background(h, w, c_max):
     hides = hidden_pixels(coc_px, radius).numpy()  # the surface fill's mask: the pixels that hide something
     assert h * w == 1 or 0 < hides.sum() < hides.size
     np.testing.assert_array_equal(got_keep, (~hides).astype(np.float32))
+
+
+@pytest.mark.parametrize("h, w, core", [(37, 50, 16), (64, 64, 16), (21, 9, 8)])
+def test_each_core_fills_its_pixels_as_the_whole_frame_does(h, w, core):
+    """The fill's per-pixel part computed core by core (each with its halo, padded only where the
+    frame ends: the graph's cores) equals it computed over the whole frame, bit for bit: level 0's
+    upsampling, the 3 x 3 bound and the silhouettes' keep, odd sizes and cores of odd length included."""
+    from neuralbokeh.core.tiling import TileLayout
+
+    gen = torch.Generator().manual_seed(h + w)
+    norm, c_max = Normalization(), 12.0
+    rgb = torch.rand(1, 3, h, w, generator=gen, dtype=torch.float64) * 4.0
+    coc = torch.rand(1, 1, h, w, generator=gen, dtype=torch.float64) * 2.0 - 1.0
+    coc[..., h // 3 : 2 * h // 3, w // 4 :] = -c_max  # a foreground block: occluders at its edges
+    contract = Contract(h, w, norm, c_max, c_max)
+    g = Nodes(GraphBuilder(), "g")
+    parts = hidden_parts(g, "aif", "coc", contract, 6)
+    whole = core_fill(g, parts, (0, h, 0, w), (h, w), True)
+    layout = TileLayout.for_image(h, w, core, 2)
+    regions = [layout.source_region(k, h, w) for k in range(layout.num_tiles)]
+    per_core = [core_fill(g, parts, r, (h, w), True) for r in regions]
+    outs = [*whole, *(t for fill in per_core for t in fill)]
+    inputs = [helper.make_tensor_value_info(n, TensorProto.FLOAT, [1, c, h, w]) for n, c in (("aif", 3), ("coc", 1))]
+    graph = helper.make_graph(g.nodes, "fill", inputs, [helper.make_tensor_value_info(o, TensorProto.FLOAT, None) for o in outs],
+                              g.b.initializers)
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)])
+    model.ir_version = 9
+    got = make_session(model.SerializeToString(), threads=1).run(None, {"aif": norm.encode(rgb).float().numpy(),
+                                                                         "coc": (coc / c_max).float().numpy()})
+    background, keep, bound = got[:3]
+    assert 0 < keep.sum() < keep.size  # something hides something, and its silhouettes are cut
+    for i, (r0, r1, c0, c1) in enumerate(regions):
+        for name, full, mine in zip(("background", "keep", "bound"), (background, keep, bound), got[3 + 3 * i : 6 + 3 * i]):
+            np.testing.assert_array_equal(mine, full[..., r0:r1, c0:c1], err_msg=f"{name}, core {i} {(r0, r1, c0, c1)}")
 
 
 @pytest.mark.parametrize("size, core, overlap", [(100, 32, 8), (97, 32, 16), (33, 32, 0), (240, 24, 12), (7, 8, 3)])
