@@ -7,8 +7,9 @@ The compositing runtime (ONNX) runs on the CPU by design; this is what training,
 PyTorch user get on a GPU. Frames: ``bench_runtime.py``'s procedural frame at each size (largest
 |CoC| 40 px at 1920 px wide, in proportion at other widths: the same lens on the same sensor;
 above the trained range the learned pupil is scaled), a third of its CoC, its left half in focus,
-and all of it in focus. The module plans its bands per frame from the frame's largest |CoC|; it
-runs every tile (tile skipping is the exported graph's). Printed per size and frame: median ms
+and all of it in focus. The module plans its bands per frame from the frame's largest |CoC| and
+skips the (tile, band, side) scatters no pixel uses; the rest (gates, in-focus light, composite)
+runs over the whole frame. Printed per size and frame: median ms
 (CUDA-synchronised, after two warm-ups), peak GPU memory, and the full frame's ratio to the CoC
 Gaussian and the exact-aperture scatter of the same run; then PSNR against the layered render
 (training metric), and the largest difference of the GPU render from the CPU render of the same
