@@ -104,6 +104,21 @@ def cpu_parity(model: torch.nn.Module, checkpoint: Path, case: dict) -> dict[str
     return out
 
 
+def profile_render(model: torch.nn.Module, case: dict, device: torch.device, rows: int = 25) -> str:
+    """torch.profiler's table of one full-frame render (after the timed ones): the ops by their
+    total device time (CPU time on the CPU), and how often the host waited for the device."""
+    from torch.profiler import ProfilerActivity, profile
+
+    render = _renderer(model, case["aif"], case["coc"].to(device).float())
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
+    with profile(activities=activities) as prof:
+        render()
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+    key = "self_cuda_time_total" if device.type == "cuda" else "self_cpu_time_total"
+    return prof.key_averages().table(sort_by=key, row_limit=rows)
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--model", type=Path, required=True, help="a lens checkpoint (train.py's checkpoint.pt)")
@@ -112,6 +127,7 @@ def main() -> None:
     p.add_argument("--seed", type=int, default=3)
     p.add_argument("--json", type=Path, help="also write the figures here")
     p.add_argument("--device", default="cuda", help="cuda, or cpu for a dry run of the script (no parity check)")
+    p.add_argument("--profile", action="store_true", help="also print torch.profiler's costliest ops of one full-frame render per size")
     args = p.parse_args()
     device = torch.device(args.device)
     if device.type == "cuda" and not torch.cuda.is_available():
@@ -130,6 +146,8 @@ def main() -> None:
         for name, r in rows.items():
             print(f"{name:<16} {r['ms']:>9.1f} {r['peak_gb']:>7.2f} {rows['full']['ms'] / r['ms']:>11.2f}")
         report[size] = rows
+        if args.profile:
+            print(profile_render(model, case, device))
         if i == 0 and device.type == "cuda":
             report[f"{size}_cpu_parity_rel"] = cpu_parity(model, args.model, case)
             print(f"GPU against CPU, full frame (max |diff| / max |CPU|): {report[f'{size}_cpu_parity_rel']}")
