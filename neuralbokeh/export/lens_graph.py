@@ -170,7 +170,7 @@ def hidden_parts(top: Nodes, colour: str, coc: str, contract: Contract, r: int) 
 def core_fill(g: Nodes, parts: FillParts, region: tuple[int, int, int, int], size: tuple[int, int],
               surface: bool) -> tuple[str, str | None, str]:
     """The fill's inputs over the image rows ``[r0, r1)`` and columns ``[c0, c1)`` (``region``)
-    of an ``size`` = (H, W) frame, from its :func:`hidden_parts`: the hidden-background estimate
+    of a frame of ``size`` (H, W), from its :func:`hidden_parts`: the hidden-background estimate
     ``(B, 3, h, w)`` (level 0 of the pull-push: level 1 upsampled x2, half-pixel, from the level-1
     pixels this region reads; each visible pixel's own colour clamped by its 3 x 3 geometric mean),
     with ``surface`` 1 where the surface fill may use a pixel's own light ``(B, 1, h, w)`` (no pixel
