@@ -68,7 +68,7 @@ def _report(name: str, expected: str, x: Any, bad: Any, unit: str) -> None:
     )
 
 
-def _within(arr: Any, low: float, high: float, low_inclusive: bool = True, high_inclusive: bool = False) -> bool:
+def all_within(arr: Any, low: float, high: float, low_inclusive: bool = True, high_inclusive: bool = False) -> bool:
     """True when ``arr`` is a non-empty float numpy array whose every element lies between ``low``
     and ``high`` (each end included as told): two reductions and no temporaries, the checks' fast
     path on large images. NaN fails (``min``/``max`` propagate it); False sends the caller to the
@@ -85,7 +85,7 @@ def check_positive(name: str, x: Any, unit: str = "", allow_inf: bool = False) -
     NaN always fails. ``unit`` is appended to the message (e.g. ``" m"``).
     """
     arr = x if (is_tensor(x) or isinstance(x, np.ndarray)) else np.asarray(x, dtype=np.float64)
-    if _within(arr, 0.0, float("inf"), low_inclusive=False, high_inclusive=allow_inf):
+    if all_within(arr, 0.0, float("inf"), low_inclusive=False, high_inclusive=allow_inf):
         return
     if allow_inf:
         bad = ~(arr > 0)
@@ -99,7 +99,7 @@ def check_positive(name: str, x: Any, unit: str = "", allow_inf: bool = False) -
 def check_finite(name: str, x: Any, unit: str = "") -> None:
     """Raise ``ValueError`` if any element of ``x`` is NaN or +-inf."""
     arr = x if (is_tensor(x) or isinstance(x, np.ndarray)) else np.asarray(x, dtype=np.float64)
-    if _within(arr, -float("inf"), float("inf"), low_inclusive=False):
+    if all_within(arr, -float("inf"), float("inf"), low_inclusive=False):
         return
     bad = ~((arr > -float("inf")) & (arr < float("inf")))
     _report(name, "finite", arr, bad, unit)
@@ -108,7 +108,7 @@ def check_finite(name: str, x: Any, unit: str = "") -> None:
 def check_nonnegative(name: str, x: Any, unit: str = "") -> None:
     """Raise ``ValueError`` unless every element of ``x`` is finite and >= 0."""
     arr = x if (is_tensor(x) or isinstance(x, np.ndarray)) else np.asarray(x, dtype=np.float64)
-    if _within(arr, 0.0, float("inf")):
+    if all_within(arr, 0.0, float("inf")):
         return
     bad = ~((arr >= 0) & (arr < float("inf")))
     _report(name, "finite and >= 0", arr, bad, unit)
@@ -117,7 +117,7 @@ def check_nonnegative(name: str, x: Any, unit: str = "") -> None:
 def check_at_least(name: str, x: Any, low: float, unit: str = "") -> None:
     """Raise ``ValueError`` unless every element of ``x`` is finite and >= ``low``."""
     arr = x if (is_tensor(x) or isinstance(x, np.ndarray)) else np.asarray(x, dtype=np.float64)
-    if _within(arr, low, float("inf")):
+    if all_within(arr, low, float("inf")):
         return
     bad = ~((arr >= low) & (arr < float("inf")))
     _report(name, f"finite and >= {low:g}", arr, bad, unit)
@@ -126,7 +126,7 @@ def check_at_least(name: str, x: Any, low: float, unit: str = "") -> None:
 def check_in_range(name: str, x: Any, low: float, high: float, unit: str = "") -> None:
     """Raise ``ValueError`` unless every element is finite and within ``[low, high]``."""
     arr = x if (is_tensor(x) or isinstance(x, np.ndarray)) else np.asarray(x, dtype=np.float64)
-    if _within(arr, low, high, high_inclusive=True):
+    if all_within(arr, low, high, high_inclusive=True):
         return
     bad = ~((arr >= low) & (arr <= high))
     _report(name, f"in [{low}, {high}]", arr, bad, unit)

@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from .checks import check_at_least, check_nonnegative, check_positive, is_tensor
+from .checks import all_within, check_at_least, check_nonnegative, check_positive, is_tensor
 
 
 @dataclass(frozen=True)
@@ -56,10 +56,7 @@ class Normalization:
     def decode(self, n: Any) -> Any:
         """[-1, 1) -> linear HDR; the exact inverse of :meth:`encode`."""
         arr = n if (is_tensor(n) or isinstance(n, np.ndarray)) else np.asarray(n, dtype=np.float64)
-        if isinstance(arr, np.ndarray):  # two reductions, then the same operations in place
-            lo, hi = arr.min(), arr.max()
-            if not (lo >= -1.0 and hi < 1.0):
-                raise ValueError(f"normalised colour must be in [-1, 1), got values in [{float(lo)}, {float(hi)}]")
+        if isinstance(arr, np.ndarray) and all_within(arr, -1.0, 1.0):  # then the same operations in place
             out = 1.0 + arr
             out *= self.scale
             out /= 1.0 - arr
