@@ -65,7 +65,7 @@ def test_runtime_errors_name_the_value(busy_onnx):
         m.render(aif, d, 2.0)
     with pytest.raises(ValueError, match="depth_m must have shape"):
         m.render(aif, depth[:, :5], 2.0)
-    with pytest.raises(ValueError, match="exceeds the model's trained maximum"):
+    with pytest.raises(ValueError, match=r"exceeds the largest this file renders, .* px; export it again with a larger --max-coc"):
         m.render_coc(aif, np.full(depth.shape, m.contract.max_coc_px * 1.5))
     with pytest.raises(FileNotFoundError):
         OnnxBokeh(busy_onnx.parent / "missing.onnx")

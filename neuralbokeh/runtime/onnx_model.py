@@ -162,7 +162,7 @@ class OnnxBokeh:
             aif: linear RGB, ``(H, W, 3)`` or ``(B, H, W, 3)``, finite, >= -normalisation offset.
             depth_m: planar depth in m, ``(H, W)``, ``(H, W, 1)`` or with a leading batch; > 0, inf allowed.
             focus_m: focus distance in m (greater than the focal length).
-            clamp_coc: clamp CoCs beyond the trained maximum (with a warning) instead of failing.
+            clamp_coc: clamp CoCs beyond the largest the file renders (with a warning) instead of failing.
             window: the part of the lens's sensor the image covers, when it is a crop
                 (default: the window the file was exported for, the whole sensor unless told).
 
@@ -239,9 +239,11 @@ class OnnxBokeh:
             over = np.abs(coc_px) > self.contract.max_coc_px
             where = format_location(np.unravel_index(int(np.argmax(np.abs(coc_px))), coc_px.shape)[1:])
             msg = (f"|CoC| up to {np.abs(coc_px).max():.3f} px at {where} ({int(over.sum())} pixels) exceeds the "
-                   f"model's trained maximum of {self.contract.max_coc_px:.3f} px")
+                   f"largest this file renders, {self.contract.max_coc_px:.3f} px")
             if not clamp_coc:
-                raise ValueError(msg + "; clamp it with clamp_coc=True (--clamp-coc on the command line)")
+                # a lens file's limit is set at export (--max-coc, the learned pupil scaled beyond training)
+                more = "export it again with a larger --max-coc, or " if self.has_bands else ""
+                raise ValueError(f"{msg}; {more}clamp it with clamp_coc=True (--clamp-coc on the command line)")
             log.warning("%s; clamped", msg)
             coc_px = np.clip(coc_px, -self.contract.max_coc_px, self.contract.max_coc_px)
         active = self.active_tiles(coc_px)
