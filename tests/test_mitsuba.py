@@ -151,6 +151,14 @@ def test_cli_shards_resume_and_noise_target(mi, tmp_path):
     meta = json.loads((out / "scene_00001" / "scene.json").read_text())
     assert [s["spp"] for s in meta["generator"]["slices"]] == [16, 16] and meta["generator"]["variant"] == "scalar_rgb"
     assert sorted(shard_indices(10, (0, 3)) + shard_indices(10, (1, 3)) + shard_indices(10, (2, 3))) == list(range(10))
+    again = tmp_path / "again"
+    assert main([*common[2:], "--out", str(again), "--only", "2", "0", "--spp", "32"]) == 0  # held-out scenes at more spp
+    assert sorted(p.name for p in again.iterdir()) == ["scene_00000", "scene_00002"]
+    a, b = (json.loads((d / "scene_00002" / "scene.json").read_text()) for d in (out, again))
+    assert a["generator"]["scene"] == b["generator"]["scene"] and a["focus_distances_m"] == b["focus_distances_m"]
+    assert b["generator"]["slices"][0]["spp"] == 32
+    with pytest.raises(SystemExit, match="--only takes scene indices 0 .. 2"):
+        main([*common[2:], "--out", str(again), "--only", "3"])
     noisy = tmp_path / "noisy"
     assert main(["--out", str(noisy), "--scenes", "1", "--size", "24", "16", "--slices", "1", "--spp", "64", "--aif-spp", "4",
                  "--noise-target", "1.0", "--variant", "scalar_rgb"]) == 0

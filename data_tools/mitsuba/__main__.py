@@ -159,6 +159,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="dataset seed")
     p.add_argument("--variant", default=None, help="mitsuba variant (default: llvm_ad_rgb when an LLVM works, else scalar_rgb)")
     p.add_argument("--shard", default="0/1", help="render the scenes i, i+n, ... of shard i/n")
+    p.add_argument("--only", type=int, nargs="+", default=None, metavar="I",
+                   help="render only these scene indices (0 .. --scenes - 1), e.g. a held-out split again at more spp")
     p.add_argument("-v", "--verbose", action="store_true", help="info logging (the variant probe)")
     return p
 
@@ -200,6 +202,11 @@ def main(argv: list[str] | None = None) -> int:
                          *args.size)
             sensor_width = args.sensor_width
             indices = shard_indices(args.scenes, shard)
+            if args.only is not None:
+                bad = [i for i in args.only if not 0 <= i < args.scenes]
+                if bad:
+                    raise ValueError(f"--only takes scene indices 0 .. {args.scenes - 1} (--scenes {args.scenes}), got {bad}")
+                indices = [i for i in indices if i in set(args.only)]
         lens = ThinLens(args.focal_length, args.f_number, sensor_width)
         params = MitsubaSceneParams(near_m=args.near, far_m=args.far)
     except (ValueError, OSError, ImportError, RuntimeError) as e:  # RuntimeError: mitsuba's XML parser
