@@ -14,7 +14,8 @@
    pinhole views) and written through the same tool, with the same disparity-to-depth mapping
    and aperture, so that every scene shares one (virtual) lens.
 2. Trains the default network (``configs/quickstart.toml`` with 32 + 16 px tiles: the overlap
-   reaches the data's largest CoC radius, ~9 px; then the ``KEY=VALUE`` overrides) on three
+   reaches the data's largest CoC radius, ~9 px; and ``model.pixel_blur``: a refocus splats each
+   view bilinearly, a blur the area raster lacks; then the ``KEY=VALUE`` overrides) on three
    quadrants and the Mitsuba light fields for ``--minutes``.
 3. Evaluates on the fourth quadrant (``--test-quadrant``, default the bottom right), next to every
    classical baseline of ``neuralbokeh.evaluation``: linear and sRGB PSNR, SSIM, HDR-FLIP, ms/MP.
@@ -97,7 +98,8 @@ def main() -> None:
     mitsuba_scenes(args.work, args.mitsuba_scenes, args.aperture, args.spp)
     run("train.py", "configs/quickstart.toml", "--overwrite", f"data.roots=['{args.work / 'train'}']", "data.test_fraction=0.0",
         "data.cache=true", "model.tile=32", "model.overlap=16", "train.steps=1000000", "train.lr_schedule='constant'",
-        "train.eval_every=1000000", "train.checkpoint_every=200", f"train.out_dir='{args.work / 'run'}'", *args.overrides,
+        "train.eval_every=1000000", "train.checkpoint_every=200", f"train.out_dir='{args.work / 'run'}'", "model.pixel_blur=true",
+        *args.overrides,
         "--time-limit", str(args.minutes))
     run("-m", "neuralbokeh.evaluation", "--data", str(args.work / "test"), "--split", "all", "--models",
         str(args.work / "run" / "checkpoint.pt"), "--baselines", "all", "--repeats", "1", "--out", str(args.work / "report"))

@@ -1,7 +1,7 @@
 """The quality floor of the learned-lens issue: the default model vs. ablations under one time budget.
 
     python benchmarks/quality_floor.py [--minutes 30] [--scenes 40] [--size 256] [--lens hard] [--tile T]
-        [--variants full paper no_tiling no_overlap tile_loss fixed3_kernels]
+        [--variants full paper no_tiling no_overlap tile_loss fixed3_kernels] [section.key=value ...]
 
 Makes (once) a synthetic dataset (``--scenes`` scenes x 4 slices, 20% of scenes held out) with
 ``--lens floor`` (7-blade aperture, cat-eye 0.6, f/2.8) or ``--lens hard`` (heart aperture,
@@ -66,7 +66,9 @@ def main() -> None:
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--lr", type=float, default=None, help="one lr for every variant (default: each architecture's own)")
     p.add_argument("--baselines-only", action="store_true", help="no training: identity, Gaussian and oracle rows")
-    args = p.parse_args()
+    p.add_argument("overrides", nargs="*", help="section.key=value applied to every variant after its own, "
+                   "e.g. model.pixel_blur=false train.pupil_tv=1e-2")
+    args = p.parse_intermixed_args()
     torch.set_num_threads(2)
     data = args.data if args.lens == "floor" or args.data != ROOT / "data" / "floor" else ROOT / "data" / f"floor_{args.lens}"
     args.data = data
@@ -79,7 +81,7 @@ def main() -> None:
             f"data.roots=['{args.data}']", "data.test_fraction=0.2", f"train.out_dir='{args.out / name}'",
             f"model.tile={args.tile or args.size // 8}", f"model.overlap={args.size // 16}", "train.steps=1000000",
             "train.lr_schedule='constant'", "train.eval_every=1000000", "train.checkpoint_every=200", *VARIANTS[name],
-            *([f"train.lr={args.lr}"] if args.lr else []),
+            *([f"train.lr={args.lr}"] if args.lr else []), *args.overrides,
         ])
 
     for name in [] if args.baselines_only else args.variants:
@@ -87,7 +89,8 @@ def main() -> None:
     base = baselines(config("full"))
     gauss, oracle = base["gaussian"][0], base["oracle"][0]
     print(f"\nheld-out PSNR dB / SSIM after {args.minutes:g} min each ({args.scenes} scenes x 4 slices, {args.size} px, "
-          f"lens {args.lens}); gap = oracle - Gaussian = {oracle - gauss:.2f} dB")
+          f"lens {args.lens}); gap = oracle - Gaussian = {oracle - gauss:.2f} dB"
+          + (f"; overrides: {' '.join(args.overrides)}" if args.overrides else ""))
     print(f"{'variant':<16} {'steps':>7} {'s/step':>7} {'PSNR':>7} {'SSIM':>7} {'gap closed':>10}")
     for name, s in rows:
         m = s["metrics"]

@@ -730,14 +730,14 @@ def _axis_variance(k):
 
 
 def test_the_pixel_blur_starts_as_the_area_raster_and_adds_its_variance_to_every_kernel():
-    """``model.pixel_blur`` (the default): at its start (0 px^2) the network is the one without it,
+    """``model.pixel_blur``: at its start (0 px^2) the network is the one without it,
     exactly; started at v_inf > 0, every defocused kernel's per-axis variance grows by ``v_inf (1 -
     exp(-d / 1 px))``; at v_inf < 0 it narrows, by no more, and never dips below zero; its sum
     stays 1, and a point in focus is left alone."""
-    plain, off = _model(pixel_blur=False), _model()
+    plain, at_start = _model(pixel_blur=False), _model(pixel_blur=True)
     x = _scene(48, 48)
     with torch.no_grad():
-        assert torch.equal(plain(x), off(x))
+        assert torch.equal(plain(x), at_start(x))
     pupils = plain.tile_pupils(plain.layout(48, 48), 48, 48)[0, :1].double()
     for start in (0.3, -0.2):
         m = _model(pixel_blur=True, pixel_blur_px2=start).double()
@@ -759,8 +759,8 @@ def test_the_pixel_blur_starts_as_the_area_raster_and_adds_its_variance_to_every
         ModelConfig(blocks=2, pixel_blur=True, pixel_blur_px2=0.5)
     with pytest.raises(ValueError, match="pixel_blur must be true or false"):
         ModelConfig(blocks=2, pixel_blur=1)
-    old = {k: v for k, v in ModelConfig(blocks=2).to_dict().items() if not k.startswith("pixel_blur")}
-    assert ModelConfig(blocks=2).pixel_blur is True and ModelConfig.from_dict(old).pixel_blur is False  # as it was trained
+    old = {k: v for k, v in ModelConfig(blocks=2, pixel_blur=True).to_dict().items() if not k.startswith("pixel_blur")}
+    assert ModelConfig(blocks=2).pixel_blur is False and ModelConfig.from_dict(old).pixel_blur is False  # as it was trained
 
 
 @pytest.mark.parametrize("truth, start, low, high, fall", [
@@ -777,7 +777,8 @@ def test_the_pixel_blur_learns_the_blur_the_truth_adds_and_none_where_it_adds_no
 
     shape = ViewGrid(np.ones((9, 9))) if truth == "views" else Disk()
     torch.manual_seed(0)
-    cfg = ModelConfig(blocks=6, tile=24, overlap=8, pupil_init="aperture", near_focus_px=0.0, vignetting=False, pixel_blur_px2=start)
+    cfg = ModelConfig(blocks=6, tile=24, overlap=8, pupil_init="aperture", near_focus_px=0.0, vignetting=False, pixel_blur=True,
+                      pixel_blur_px2=start)
     m = build_model(cfg, Contract(48, 48, NORM, C_MAX, C_MAX, aperture=ApertureModel(shape).to_dict())).train()
     g = torch.Generator().manual_seed(3)
     img = 0.18 * torch.exp2(6 * torch.rand(2, 3, 48, 48, generator=g, dtype=torch.float64) - 3)

@@ -103,7 +103,9 @@ class ModelConfig:
             pupil rasterised by area (lens): a per-axis variance ``v(d) = v_inf (1 - exp(-d /
             d_v))`` px^2 at CoC ``d``, zero in focus, ``|v_inf| < 0.5`` (negative: sharper than
             the area raster), ``d_v`` learned from 1 px. E.g. a refocused light field splats
-            each view bilinearly: a tent where the raster has a box (+1/12 px^2).
+            each view bilinearly: a tent where the raster has a box (+1/12 px^2). Off by
+            default: on renders whose truth is the area raster or sharper it learned a
+            sharpening that traded held-out accuracy for the training samples' noise.
         pixel_blur_px2: the starting ``v_inf`` (px^2, in (-0.5, 0.5); 0, the default: the area
             raster exactly), with ``pixel_blur`` only.
         (``features``, ``head`` and the FFT thresholds: paper only; ``pupil_*``,
@@ -132,7 +134,7 @@ class ModelConfig:
     surface_fill: bool = True
     band_blend: str = "hat"
     near_focus_px: float = 4.0
-    pixel_blur: bool = True
+    pixel_blur: bool = False
     pixel_blur_px2: float = 0.0
 
     def __post_init__(self) -> None:
