@@ -104,8 +104,8 @@ class ModelConfig:
             d_v))`` px^2 at CoC ``d``, zero in focus, ``|v_inf| < 0.5`` (negative: sharper than
             the area raster), ``d_v`` learned from 1 px. E.g. a refocused light field splats
             each view bilinearly: a tent where the raster has a box (+1/12 px^2). Off by
-            default: on renders whose truth is the area raster or sharper it learned a
-            sharpening that traded held-out accuracy for the training samples' noise.
+            default: where the truth is the area raster or sharper it learned a sharpening
+            that cost held-out accuracy (``docs/network.md``).
         pixel_blur_px2: the starting ``v_inf`` (px^2, in (-0.5, 0.5); 0, the default: the area
             raster exactly), with ``pixel_blur`` only.
         (``features``, ``head`` and the FFT thresholds: paper only; ``pupil_*``,
