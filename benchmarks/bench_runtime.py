@@ -55,11 +55,12 @@ H, W, C_MAX, TILE, OVERLAP = 1080, 1920, 41.0, 240, 24
 
 
 def make_frame(seed: int, height: int = H, width: int = W, max_coc_px: float = 40.0, device: str = "cpu",
-               ) -> tuple[np.ndarray, np.ndarray, dict, np.ndarray]:
+               cat_eye: float = 0.0) -> tuple[np.ndarray, np.ndarray, dict, np.ndarray]:
     """``(aif (H, W, 3) linear, signed CoC (H, W) px, lens dict, truth (H, W, 3))`` of the
     benchmark frame (``height`` x ``width`` px, largest |CoC| ``max_coc_px``); the truth is the
     layered render (``scatter_layers``: every layer whole, what foregrounds hide included), as
-    ``data_tools.synth`` renders training data (on ``device``)."""
+    ``data_tools.synth`` renders training data (on ``device``), through a 7-blade aperture with
+    ``cat_eye``."""
     sys.path.insert(0, str(ROOT))
     import torch
 
@@ -77,7 +78,7 @@ def make_frame(seed: int, height: int = H, width: int = W, max_coc_px: float = 4
     colors = torch.from_numpy(np.stack([layer.color * layer.alpha[..., None] for layer in layers])).permute(0, 3, 1, 2).to(device)
     alphas = torch.from_numpy(np.stack([layer.alpha for layer in layers]))[:, None].to(device)
     truth = scatter_layers(colors, alphas, [lens.coc_px(layer.depth_m, focus, W, signed=True) for layer in layers],
-                           ApertureModel(parse_aperture("polygon:7")))
+                           ApertureModel(parse_aperture("polygon:7"), cat_eye=cat_eye))
     return (aif.astype(np.float32), lens.coc_px(depth, focus, W, signed=True), lens.to_dict(),
             truth.permute(1, 2, 0).cpu().numpy().astype(np.float32))
 

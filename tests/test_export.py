@@ -1,5 +1,6 @@
 """export.py and the ONNX graph: parity with PyTorch, metadata, low-rank kernels, failure modes."""
 
+import dataclasses
 import json
 import math
 import subprocess
@@ -28,6 +29,7 @@ from neuralbokeh.export.lens_graph import (
     window_max,
 )
 from neuralbokeh.export.lowrank import cheaper_ranks, factorize, parse_kernels, reconstruct, relative_error
+from neuralbokeh.networks import build_model
 from neuralbokeh.ops.holes import hidden_background, hidden_pixels
 from neuralbokeh.runtime.onnx_model import make_session
 
@@ -67,6 +69,20 @@ def test_cheaper_ranks_and_kernel_spec_parsing():
 # --- export --------------------------------------------------------------------------------------
 
 
+def _ops(graph):
+    """``(graph name, op type)`` of every node of ``graph`` and of its ``If`` branches, recursively."""
+    for node in graph.node:
+        yield graph.name, node.op_type
+        for attr in node.attribute:
+            if attr.type == onnx.AttributeProto.GRAPH:
+                yield from _ops(attr.g)
+
+
+def _warped_bands(path):
+    """The bands whose branch (``t{k}_band{n}_{side}``) samples a field flow (``GridSample``)."""
+    return {int(name.split("_band")[1].split("_")[0]) for name, op in _ops(onnx.load(str(path)).graph) if op == "GridSample"}
+
+
 def _run_onnx(path, aif, coc, active=None):
     return run_session(make_session(str(path), threads=1), aif, coc, active)
 
@@ -85,6 +101,7 @@ def test_export_direct_matches_pytorch_and_carries_metadata(busy_checkpoint, tmp
         {k: v for k, v in ckpt["contract"].items() if not k.endswith("coc_px")}
     assert meta["format_version"] == 2 and meta["layout"] == list(model.layout(*model.contract.size)) and meta["package_version"]
     assert meta["sensor_window"] == {"left": 0.0, "top": 0.0, "width": 1.0, "height": 1.0}
+    assert _warped_bands(out)  # the busy cat-eye's field flow (model.field_flow) is in the parity below
     # independent check on fresh inputs, batch of 3 (dynamic batch)
     x = calibration_inputs(*model.contract.size, count=3, seed=5)
     got = _run_onnx(out, x[:, :3].numpy(), x[:, 3:].numpy())
@@ -92,6 +109,25 @@ def test_export_direct_matches_pytorch_and_carries_metadata(busy_checkpoint, tmp
         want = model(x).numpy()
     assert np.abs(got - want).max() < 1e-4
     assert np.abs(want - x[:, :3].numpy()).max() > 1e-2  # the busy network is far from the identity
+
+
+def test_an_export_may_leave_out_the_field_flow(busy_checkpoint, tmp_path):
+    """``export.py --no-field-flow``: the file samples no flow, says so in its model config, and
+    matches the network without it."""
+    out = tmp_path / "still.onnx"
+    r = subprocess.run([sys.executable, str(ROOT / "export.py"), str(busy_checkpoint), "--out", str(out), "--kernels", "direct",
+                        "--threads", "1", "--no-field-flow"], capture_output=True, text=True, cwd=ROOT)
+    assert r.returncode == 0, r.stderr
+    assert not _warped_bands(out)
+    assert json.loads({p.key: p.value for p in onnx.load(out).metadata_props}["neuralbokeh"])["model_config"]["field_flow"] is False
+    model, ckpt = load_model(busy_checkpoint)
+    still = build_model(dataclasses.replace(model.config, field_flow=False), model.contract).eval()
+    still.load_state_dict(ckpt["model_state"])
+    x = calibration_inputs(*model.contract.size, count=1, seed=4)
+    with torch.no_grad():
+        want, moved = still(x).numpy(), model(x).numpy()
+    assert np.abs(_run_onnx(out, x[:, :3].numpy(), x[:, 3:].numpy()) - want).max() < 1e-4
+    assert np.abs(moved - want).max() > 1e-3  # the busy cat-eye's flow moves light
 
 
 def test_export_cli_prints_parity_and_fails_over_tolerance(busy_checkpoint, tmp_path):
@@ -177,6 +213,8 @@ def test_multires_export_matches_its_pytorch_reference(busy_checkpoint, tmp_path
     scales = report["band_scales"]
     assert max(scales.values()) >= 2 and min(scales.values()) == 1  # the tiny model's wide bands are reduced
     assert max(report["parity"].values()) <= 1e-4 and max(report["approximation"].values()) > 1e-4
+    # the busy cat-eye's field flow (model.field_flow) is sampled on the coarse grids too
+    assert any(scales[n] > 1 for n in _warped_bands(tmp_path / "m.onnx")), scales
     x = calibration_inputs(*model.contract.size, count=2, seed=9)
     got = _run_onnx(tmp_path / "m.onnx", x[:, :3].numpy(), x[:, 3:].numpy())
     with torch.no_grad():

@@ -22,7 +22,7 @@ from ..core.io import atomic_write
 from ..core.normalization import Normalization
 from ..core.optics import SensorWindow
 from ..core.tiling import TileLayout
-from ..networks.lens import LensBokeh, band_scales, overlap_for, reduce_kernel
+from ..networks.lens import LensBokeh, band_scales, overlap_for, pupil_centroids, reduce_kernel
 from ..networks.paper import PaperBokeh
 from ..runtime.onnx_model import FORMAT, FORMAT_VERSION, METADATA_KEY, make_session
 from .graph import build_graph
@@ -33,6 +33,10 @@ log = logging.getLogger(__name__)
 
 # Max abs parity error (normalised units, outputs in (-1, 1)) above which the export fails.
 DEFAULT_TOLERANCE = {False: 1e-4, True: 2e-2}
+# fp32, where the lens graph samples a field flow (GridSample): its sample positions round to float32
+# (~2e-5 px in a 288 px window), ~3e-5 of a window's range per sample in onnxruntime and in
+# torch alike, which the random-colour probe at 1080p meets as up to ~1.3e-4 (docs/runtime.md)
+FLOW_TOLERANCE = 3e-4
 
 
 def calibration_inputs(height: int, width: int, count: int = 2, seed: int = 0) -> torch.Tensor:
@@ -175,14 +179,15 @@ def run_session(sess: ort.InferenceSession, aif: np.ndarray, coc: np.ndarray,
 
 
 def plate_model(model: LensBokeh, size: tuple[int, int] | None = None, max_coc_px: float | None = None,
-                tile_px: int | None = None) -> LensBokeh:
+                tile_px: int | None = None, field_flow: bool | None = None) -> LensBokeh:
     """The lens network as an export for one plate format sees it: the same weights, a contract
     of the plate's ``size`` ``(H, W)`` px (default: the trained one) whose CoC scale and largest
     CoC are the last band centre of the plan for ``max_coc_px`` (default: the trained maximum;
     larger renders CoCs beyond it, through the scaled pupil), N = that plan's bands, and tile
     cores of ``tile_px`` px (default: the trained ones) with the trained overlap, widened by what
     a CoC beyond the trained range adds to the blur's radius
-    (:func:`~neuralbokeh.networks.lens.overlap_for`)."""
+    (:func:`~neuralbokeh.networks.lens.overlap_for`); ``field_flow``: ``model.field_flow`` on or
+    off (default: the trained model's)."""
     if max_coc_px is not None and not (np.isfinite(max_coc_px) and max_coc_px > 0):
         raise ValueError(f"max_coc_px must be a finite number of px > 0, got {max_coc_px!r}")
     height, width = size or model.contract.size
@@ -196,7 +201,8 @@ def plate_model(model: LensBokeh, size: tuple[int, int] | None = None, max_coc_p
     contract = dataclasses.replace(model.contract, image_height=int(height), image_width=int(width),
                                    coc_scale_px=max(plan.c_plan_px, 1.0), max_coc_px=plan.c_plan_px)
     tile = max(model.config.tile, 2 * overlap) if tile_px is None else int(tile_px)
-    plate = LensBokeh(dataclasses.replace(model.config, blocks=plan.blocks, tile=tile, overlap=overlap), contract)
+    flow = model.config.field_flow if field_flow is None else bool(field_flow)
+    plate = LensBokeh(dataclasses.replace(model.config, blocks=plan.blocks, tile=tile, overlap=overlap, field_flow=flow), contract)
     plate.load_state_dict(model.state_dict())
     return plate.eval()
 
@@ -214,6 +220,7 @@ def export_checkpoint(
     max_coc_px: float | None = None,
     tile_px: int | None = None,
     full_parity: bool = False,
+    field_flow: bool | None = None,
     progress: bool = False,
 ) -> dict[str, Any]:
     """Export a checkpoint to ONNX, check it against PyTorch, then move it into place.
@@ -229,7 +236,8 @@ def export_checkpoint(
             reference), ``rows`` (the same sums as row GEMMs) or ``multires:PX`` (as rows; bands
             whose CoC is wide enough convolved on grids 2, 4 or 8 times coarser, keeping the CoC
             at least PX coarse pixels wide; default ``LENS_DEFAULT_KERNELS``).
-        tolerance: max abs parity error in normalised units (default 1e-4 fp32, 2e-2 fp16).
+        tolerance: max abs parity error in normalised units (default 1e-4 fp32, 3e-4 for a lens
+            graph that samples a field flow, 2e-2 fp16).
         threads: onnxruntime threads for the parity run.
         size: lens network: the plate format ``(H, W)`` px the file renders (default: the
             trained size); the learned lens renders any size.
@@ -242,6 +250,8 @@ def export_checkpoint(
             but run fewer, larger convolutions (fewer graph branches, less overlap).
         full_parity: lens network: check every tile (minutes for a 4K plate) instead of the
             :func:`parity_tiles` sample of at most 9.
+        field_flow: lens network: ``model.field_flow`` on or off in the file (default: the
+            checkpoint's; off is faster where a cat-eye moves the light).
         progress: a tqdm bar over the build, the load and each parity case (the CLI's).
 
     Returns:
@@ -254,17 +264,17 @@ def export_checkpoint(
     Raises:
         ValueError: bad options, or a parity error above ``tolerance`` (nothing is written).
     """
-    tolerance = DEFAULT_TOLERANCE[fp16] if tolerance is None else tolerance
+    given = tolerance
     _check_opset(opset, None)  # before the checkpoint is read
     model, ckpt = load_model(checkpoint)
     lens = model.config.architecture == "lens"
-    if not lens and (size or window or max_coc_px or tile_px or full_parity):
-        raise ValueError("size, window, max_coc_px, tile_px and full_parity need the lens network: the paper's network renders its trained "
-                         f"size {model.contract.size[1]}x{model.contract.size[0]} px only")
+    if not lens and (size or window or max_coc_px or tile_px or full_parity or field_flow is not None):
+        raise ValueError("size, window, max_coc_px, tile_px, full_parity and field_flow need the lens network: the paper's network "
+                         f"renders its trained size {model.contract.size[1]}x{model.contract.size[0]} px only")
     opset = _check_opset(opset, lens)
     window = window or SensorWindow()
     if lens:
-        model = plate_model(model, size, max_coc_px, tile_px)
+        model = plate_model(model, size, max_coc_px, tile_px, field_flow)
         build = _LensExport(model, LENS_DEFAULT_KERNELS if kernels is None else kernels, window)
     else:
         build = _PaperExport(model, DEFAULT_KERNELS if kernels is None else kernels)
@@ -292,6 +302,7 @@ def export_checkpoint(
     parity, approx = _parity(sess, probes, build, active, bar)
     bar.close()
     worst = max(parity.values())
+    tolerance = given if given is not None else FLOW_TOLERANCE if getattr(build, "warps", False) and not fp16 else DEFAULT_TOLERANCE[fp16]
     log.info("parity (max abs, normalised): %s; approximation: %s", parity, approx)
     if worst > tolerance:
         raise ValueError(f"ONNX and PyTorch differ by up to {worst:.3g} (> tolerance {tolerance:g}) per case {parity}; not written")
@@ -330,6 +341,7 @@ class _LensExport:
         self.window = torch.tensor([[window.left, window.top, window.width, window.height]])
         self.approximate = any(s > 1 for s in self.scales.values())
         self.exact: LensBokeh | None = None  # the float64 copy of the reference
+        self.warps = False  # whether the graph samples a field flow (set by graph())
 
     def graph(self, fp16: bool, opset: int, props: dict[str, str]) -> onnx.ModelProto:
         m, d = self.model, self.plan.diameters
@@ -344,11 +356,19 @@ class _LensExport:
             kernel_slopes = None if m.config.band_blend != "hermite" else {
                 n: reduce_kernel(m.kernel_slopes(n, pupils, float(d[n]), self.plan.band_step_px(n)).double(), self.scales[n]).numpy()
                 for n in range(1, m.config.blocks + 1)}
+            centroids = None
+            if m.config.field_flow and bool(drift.abs().max() > 0):  # LensBokeh.centroid_offsets' parts
+                nodes, c_rows, c_cols = (t.double() for t in m.centroid_lattice(*m.contract.size, self.window))
+                centre = pupil_centroids(pupils).mean(dim=2).double().numpy()  # (tiles, 2, 2)
+                radius = {n: slopes[n].mean(axis=1) for n in slopes}  # (2,) per side, as the module's warp
+                reach = m.centroid_offsets(layout, pupils, *m.contract.size, self.window).abs().flatten(2).amax(dim=2)
+                centroids = ((nodes.numpy(), c_rows[0].numpy(), c_cols[0].numpy()), centre, radius, reach.double().numpy())
         flow = None if not bool(drift.abs().max() > 0) else ((drift.numpy(), rows.numpy(), cols.numpy()), slopes)
+        self.warps = centroids is not None
         gain = None if m.fill_gain is None else float(m.far_light_gain().detach())
         share = None if m.surface_fill is None else float(m.surface_fill_share().detach())
         return build_lens_graph(band_kernels, self.plan, m.config, m.contract, fp16, opset, props, self.scales,
-                                self.spec.rows, flow, gain, kernel_slopes, share, margins=margins)
+                                self.spec.rows, flow, gain, kernel_slopes, share, margins=margins, centroids=centroids)
 
     def reference(self, x: torch.Tensor, active: torch.Tensor) -> torch.Tensor:
         """The PyTorch function of the exported kernels (coarse grids included) on the

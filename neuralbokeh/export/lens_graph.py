@@ -55,6 +55,7 @@ from ..core.contract import Contract
 from ..core.normalization import Normalization
 from ..core.tiling import pyramid_levels
 from ..networks.config import SILHOUETTE_PX, SURFACE_FILL_EPS, ModelConfig
+from ..networks.lens import FLOW_MIN_PX
 from ..ops.holes import JUMP_PX, LOG_OFFSET, OUTLIER_RATIO, STEP_PX
 from .graph import GraphBuilder, finish_model
 
@@ -318,9 +319,15 @@ def _hermite_weights(g: Nodes, pos: str, n: int) -> tuple[str, str]:
     return value, slope
 
 
+def _pixel_centres(win: int) -> np.ndarray:
+    """``(1, win, win, 2)``: the (x, y) of each pixel centre in GridSample's [-1, 1] (align_corners=0)."""
+    c = (np.arange(win) * 2.0 + 1.0) / win - 1.0
+    return np.stack(np.broadcast_arrays(c[None, :], c[:, None]), axis=-1)[None].astype(np.float32)
+
+
 def _band(b: GraphBuilder, k: int, n: int, side: int, pos: str, side_mask: str, src_mask: str, rgb: str, c: str,
           kernel: np.ndarray, flow: tuple[str, np.ndarray] | None, scale: int, win: int, band_coc: float, margin: float,
-          fp16: bool, rows: bool, slope: np.ndarray | None = None) -> onnx.GraphProto:
+          fp16: bool, rows: bool, slope: np.ndarray | None = None, warp: tuple[str, float] | None = None) -> onnx.GraphProto:
     """Then-branch: band ``n``'s contribution ``(1, B, 3, 6, win, win)``, (near, same, far) x (RGB, coverage),
     its convolution on a grid ``scale`` times coarser when ``scale > 1`` (``kernel`` is then
     the binned one, :func:`~neuralbokeh.networks.lens.reduce_kernel`), by rows
@@ -328,7 +335,11 @@ def _band(b: GraphBuilder, k: int, n: int, side: int, pos: str, side_mask: str, 
     side's centroid drift ``(B, 3, win, win)``, the gain's slope ``(3,)``): the colour scattered
     is ``rgb - slope x that`` (:meth:`~neuralbokeh.networks.lens.LensBokeh.colour_gains`).
     ``slope``: the kernels' slope in the diameter (Hermite blend, ``(2, 3, k, k)`` as
-    ``kernel``): each group of the convolution then takes the (kernel, slope) features of one channel."""
+    ``kernel``): each group of the convolution then takes the (kernel, slope) features of one channel.
+    ``warp``: (this side's centroid offsets ``(1, 2, win, win)``, the CoC radius (px, signed as
+    ``gain_slopes``)): the features are sampled at ``p - radius x offset`` first
+    (:func:`~neuralbokeh.networks.lens.flow_warp`, ``model.field_flow``), on the coarse grid
+    when ``scale > 1``."""
     g = Nodes(GraphBuilder(b.count), f"t{k}.n{n}s{side}")
     one = g.c("one", 1.0)
     if slope is None:
@@ -346,10 +357,20 @@ def _band(b: GraphBuilder, k: int, n: int, side: int, pos: str, side_mask: str, 
     else:  # interleaved (kernel, slope) per channel: (B, 6, 2, win, win) -> (B, 12, win, win)
         pair = g.op("Concat", *(g.op("Unsqueeze", f, g.c("ax2", [2], np.int64)) for f in parts), axis=2)
         feats = g.op("Reshape", pair, g.c("pair_shape", [0, 12, win, win], np.int64))
+    offsets = None if warp is None else warp[0]
     if scale > 1:
         extra = -(-win // scale) * scale - win
         feats = g.op("AveragePool", feats, kernel_shape=[scale, scale], strides=[scale, scale], pads=[0, 0, extra, extra],
                      count_include_pad=1)
+        if offsets is not None:  # the flow box-averaged as the features
+            offsets = g.op("AveragePool", offsets, kernel_shape=[scale, scale], strides=[scale, scale], pads=[0, 0, extra, extra],
+                           count_include_pad=1)
+    if warp is not None:  # flow_warp on this grid: its pixel centres (align_corners=False) minus the flow in its px
+        n_px = -(-win // scale)
+        moved = g.op("Mul", g.op("Transpose", offsets, perm=[0, 2, 3, 1]), g.c("to_grid", -2.0 * warp[1] / (scale * n_px)))
+        grid = g.op("Add", g.c("centres", _pixel_centres(n_px)), moved)
+        batch = g.op("Concat", g.op("Shape", feats, end=1), g.c("grid_tail", [n_px, n_px, 2], np.int64), axis=0)
+        feats = g.op("GridSample", feats, g.op("Expand", grid, batch), mode="bilinear", padding_mode="border", align_corners=0)
     psfs = [kernel] if slope is None else [kernel, slope]
     w = np.stack([np.concatenate([f, f]) for f in psfs], axis=1)[:, :, ::-1, ::-1]  # (6, 1 or 2, k, k), correlation weights
     p = kernel.shape[-1] // 2
@@ -380,7 +401,8 @@ def _band(b: GraphBuilder, k: int, n: int, side: int, pos: str, side_mask: str, 
 def _tile(b: GraphBuilder, k: int, cut: tuple[str, str, str | None], kernels: Mapping[int, np.ndarray],
           flow: tuple[str, Mapping[int, np.ndarray]] | None,
           scales: Mapping[int, int], src: np.ndarray, cfg: ModelConfig, contract: Contract, plan: BandPlan, fp16: bool,
-          rows: bool, margins: Mapping[int, float], slopes: Mapping[int, np.ndarray] | None = None) -> onnx.GraphProto:
+          rows: bool, margins: Mapping[int, float], slopes: Mapping[int, np.ndarray] | None = None,
+          centroids: tuple[str, np.ndarray, Mapping[int, np.ndarray], np.ndarray] | None = None) -> onnx.GraphProto:
     """Then-branch: tile ``k``'s accumulators ``(B, 3, 6, win, win)``, flattened to ``(1, B 18 win^2)``,
     from its window of the inputs ``aif`` and ``coc`` (``cut``, :func:`_cut`: a tile that does not
     run cuts nothing); band ``n``, side ``s`` runs where ``band_active[k, n - 1, s]``. A
@@ -388,7 +410,10 @@ def _tile(b: GraphBuilder, k: int, cut: tuple[str, str, str | None], kernels: Ma
     costs only the bands that ran. ``flow``: (the centroid drift ``(1, 6, H, W)``,
     ``{n: (2, 3)}`` the gains' slopes) or None (no drift). ``slopes``: ``{n: (2, 3,
     k, k)}`` the kernels' slopes (Hermite blend) or None (hat). ``margins``: ``{n: px}`` each
-    band's occlusion margin."""
+    band's occlusion margin. ``centroids``: (the pupils' centroid map ``(1, 4, H, W)``, this
+    tile's pupils' centroid ``(2, 2)`` (side, x / y), ``{n: (2,)}`` each band's CoC radius per
+    side, ``(2,)`` the largest offset over the window per side) for ``model.field_flow``, or
+    None; a band and side is warped where radius x offset reaches ``FLOW_MIN_PX``, as the module."""
     g = Nodes(GraphBuilder(b.count), f"t{k}")
     blocks, diameters = plan.blocks, plan.diameters
     win = src.shape[-1]
@@ -418,13 +443,20 @@ def _tile(b: GraphBuilder, k: int, cut: tuple[str, str, str | None], kernels: Ma
         moved = None if flow is None else [
             g.op("Mul", rgb, g.op("Slice", drift, g.c(f"d{s}0", [3 * s], np.int64), g.c(f"d{s}1", [3 * s + 3], np.int64),
                                   g.c("ax1", [1], np.int64))) for s in range(2)]  # colour x drift, per side
+        offsets = None
+        if centroids is not None:  # LensBokeh.centroid_offsets: each pixel's centroid minus the tile's, per side
+            off = g.op("Sub", _cut(g, centroids[0], cut), g.c("centroid", np.reshape(centroids[1], (1, 4, 1, 1))))
+            offsets = [g.op("Slice", off, g.c(f"o{s}0", [2 * s], np.int64), g.c(f"o{s}1", [2 * s + 2], np.int64),
+                            g.c("ax1", [1], np.int64)) for s in range(2)]
         for n in range(1, blocks + 1):
             for side, (mask, sign) in enumerate(((behind, 1.0), (front, -1.0))):
                 used = g.op("Gather", g.op("Gather", flags, g.c(f"n{n}_row", n - 1, np.int64)), g.c(f"side{side}", side, np.int64))
                 band_flow = None if moved is None else (moved[side], flow[1][n][side])
                 then = _band(g.b, k, n, side, pos, mask, src_mask, rgb, c, kernels[n][side], band_flow, scales.get(n, 1), win,
                              sign * float(diameters[n]), margins[n], fp16, rows,
-                             None if slopes is None else slopes[n][side])
+                             None if slopes is None else slopes[n][side],
+                             None if offsets is None or abs(centroids[2][n][side]) * centroids[3][side] < FLOW_MIN_PX
+                             else (offsets[side], float(centroids[2][n][side])))
                 skip = Nodes(GraphBuilder(g.b.count), f"t{k}.n{n}s{side}.skip")
                 empty = skip.op("Slice", base, skip.c("s0", [0], np.int64), skip.c("s0", [0], np.int64), skip.c("ax0", [0], np.int64))
                 else_graph = _branch(skip, empty, f"t{k}_band{n}_{side}_skip")
@@ -644,7 +676,9 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: Mod
                      scales: Mapping[int, int] | None = None, rows: bool = False,
                      flow: tuple[tuple[np.ndarray, np.ndarray, np.ndarray], Mapping[int, np.ndarray]] | None = None,
                      fill_gain: float | None = None, slopes: Mapping[int, np.ndarray] | None = None,
-                     surface_share: float | None = None, *, margins: Mapping[int, float]) -> onnx.ModelProto:
+                     surface_share: float | None = None, *, margins: Mapping[int, float],
+                     centroids: tuple[tuple[np.ndarray, np.ndarray, np.ndarray], np.ndarray, Mapping[int, np.ndarray],
+                                      np.ndarray] | None = None) -> onnx.ModelProto:
     """The full-image ONNX model of a ``LensBokeh``.
 
     Args:
@@ -670,6 +704,10 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: Mod
         slopes: ``band_blend = "hermite"`` only: ``{n: (tiles, 2, 3, k, k)}`` the kernels' slopes
             in the diameter times the lattice step (``LensBokeh.kernel_slopes``), binned as
             ``kernels``.
+        centroids: ``model.field_flow`` only (else None): ``((nodes (2, 2, Gy, Gx), rows (H, Gy),
+            cols (W, Gx)) of LensBokeh.centroid_lattice, (tiles, 2, 2) each tile's pupils'
+            centroid, {n: (2,)} band n's CoC radius per side, signed as gain_slopes, (tiles, 2)
+            the largest offset (aperture radii) over each tile's window per side)``.
     """
     if opset < 18:
         raise ValueError(f"the lens graph needs opset >= 18 (Col2Im), got {opset}")
@@ -689,6 +727,12 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: Mod
         at_rows = top.op("MatMul", b.const("drift_rows", rows_w), b.const("drift_nodes", np.reshape(nodes, (6, *nodes.shape[-2:]))))
         full = top.op("MatMul", at_rows, b.const("drift_cols_t", np.transpose(cols_w)))  # (6, H, W)
         drift = top.op("Unsqueeze", full, b.const("ax0", [0], np.int64))
+    centroid_map = None
+    if centroids is not None:  # as the drift: the centroid at every pixel from its lattice
+        nodes, rows_w, cols_w = centroids[0]
+        at_rows = top.op("MatMul", b.const("centroid_rows", rows_w), b.const("centroid_nodes", np.reshape(nodes, (4, *nodes.shape[-2:]))))
+        full = top.op("MatMul", at_rows, b.const("centroid_cols_t", np.transpose(cols_w)))  # (4, H, W)
+        centroid_map = top.op("Unsqueeze", full, b.const("ax0", [0], np.int64))
     placed = []
     for k, r, c in layout.origins():
         y0, x0 = r - pad_t, c - pad_l  # the window in frame px; the edge pads it where it leaves the frame
@@ -701,7 +745,9 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: Mod
         tile_kernels = {n: kernels[n][k] for n in kernels}
         tile_flow = None if drift is None else (drift, flow[1])
         tile_slopes = None if slopes is None else {n: slopes[n][k] for n in slopes}
-        then = _tile(b, k, cut, tile_kernels, tile_flow, scales, source_masks[k], cfg, contract, plan, fp16, rows, margins, tile_slopes)
+        tile_centroids = None if centroid_map is None else (centroid_map, centroids[1][k], centroids[2], centroids[3][k])
+        then = _tile(b, k, cut, tile_kernels, tile_flow, scales, source_masks[k], cfg, contract, plan, fp16, rows, margins, tile_slopes,
+                     tile_centroids)
         b.count += 10_000  # branch-local names stay unique across branches
         other = _idle(b, k, win)
         b.count += 10_000

@@ -30,7 +30,8 @@ SURFACE_FILL_EPS = 1e-3
 SILHOUETTE_PX = 1
 # what a checkpoint written before a key existed meant by leaving it out, where the default has
 # changed since: its network is rebuilt as it was trained
-LEGACY_DEFAULTS = {"near_focus_px": 0.0, "pixel_blur": False, "surface_fill": False, "occlusion_margin_learned": False}
+LEGACY_DEFAULTS = {"near_focus_px": 0.0, "pixel_blur": False, "surface_fill": False, "occlusion_margin_learned": False,
+                   "field_flow": False}
 KERNEL_SIZES = ("growing", "fixed3")
 TILINGS = ("overlap", "none", "no_overlap")
 HEADS = ("identity", "paper")
@@ -108,9 +109,16 @@ class ModelConfig:
             that cost held-out accuracy (``docs/network.md``).
         pixel_blur_px2: the starting ``v_inf`` (px^2, in (-0.5, 0.5); 0, the default: the area
             raster exactly), with ``pixel_blur`` only.
+        field_flow: move each source pixel's light by where its own pupil's centroid lies
+            relative to its tile's (lens): a tile's kernels are its pupil's at the tile's
+            centre, and across a tile the cat-eye moves a spot by up to a tenth of its radius
+            and more on small frames. Band ``n``'s features are sampled at ``p - f(p)``, ``f =
+            d_n / 2 x (mu(p) - mu(tile))`` (the channels' mean centroid, in aperture radii) before
+            the scatter, which with the drift's colour gain (its Jacobian) moves the light as
+            the per-pixel pupil would, to first order. Skipped where the pupils do not vary.
         (``features``, ``head`` and the FFT thresholds: paper only; ``pupil_*``,
         ``field_grid``, ``vignetting``, ``occlusion_margin*``, ``fill``, ``surface_fill``,
-        ``band_blend``, ``near_focus_px``, ``pixel_blur*``: lens only; the rest: both.)
+        ``band_blend``, ``near_focus_px``, ``pixel_blur*``, ``field_flow``: lens only; the rest: both.)
     """
 
     architecture: str = "lens"
@@ -136,6 +144,7 @@ class ModelConfig:
     near_focus_px: float = 4.0
     pixel_blur: bool = False
     pixel_blur_px2: float = 0.0
+    field_flow: bool = True
 
     def __post_init__(self) -> None:
         for name in ("features", "tile", "fft_min_kernel", "fft_min_kernel_train"):
@@ -159,6 +168,8 @@ class ModelConfig:
             raise ValueError(f"model.occlusion_margin_learned must be true or false, got {self.occlusion_margin_learned!r}")
         if not isinstance(self.surface_fill, bool):
             raise ValueError(f"model.surface_fill must be true or false, got {self.surface_fill!r}")
+        if not isinstance(self.field_flow, bool):
+            raise ValueError(f"model.field_flow must be true or false, got {self.field_flow!r}")
         if not isinstance(self.pixel_blur, bool):
             raise ValueError(f"model.pixel_blur must be true or false, got {self.pixel_blur!r}")
         v = self.pixel_blur_px2

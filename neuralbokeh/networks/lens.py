@@ -109,6 +109,10 @@ _EPS = 1e-8
 # well below a pixel (the rasterisation is piecewise smooth at that scale), well above float32's
 # rounding of kernels that sum to 1
 SLOPE_DELTA_PX = 0.02
+# model.field_flow warps a tile's band only where it moves some light by at least this (px): the
+# bilinear resampling smears what it moves by up to 0.25 px^2, more than a smaller shift is worth
+# (on the Mitsuba set's clean render, with its own lens: docs/benchmarks.md, "The field flow")
+FLOW_MIN_PX = 0.25
 # the surface fill's share at the start (model.surface_fill): nearly the surface's own blurred light,
 # what the optics says is behind a sharp foreground, with room for the data to say otherwise
 SURFACE_FILL_START = 0.95
@@ -245,18 +249,26 @@ def _prior_shape(cfg: Any, aperture: dict | None) -> Aperture:
     return aperture_from_dict(aperture["shape"])
 
 
-def _scatter(feats: torch.Tensor, kern: torch.Tensor, which: torch.Tensor, s: int, slope: torch.Tensor | None = None) -> torch.Tensor:
+def _scatter(feats: torch.Tensor, kern: torch.Tensor, which: torch.Tensor, s: int, slope: torch.Tensor | None = None,
+             flow: torch.Tensor | None = None) -> torch.Tensor:
     """(colour x gate, gate) ``(M, 4, win, win)`` scattered by the kernels ``kern[which]``
     (``(tiles, 3, k, k)``): ``(M, 6, win, win)`` (colour, per-channel coverage), 'same' size,
     on a grid ``s`` times coarser when ``s > 1``. With the kernels' ``slope`` (Hermite blend),
     ``feats`` ``(M, 8, win, win)`` also holds (colour x slope weight, slope weight), scattered
-    by the slope and added."""
+    by the slope and added. ``flow`` ``(M, 2, win, win)`` px (``model.field_flow``): the
+    features are first moved by it (:func:`_flow_where_it_moves`), on the coarse grid when
+    ``s > 1`` (the flow box-averaged as the features, in coarse px)."""
     win = feats.shape[-1]
+    moves = None if flow is None else flow.abs().flatten(1).amax(dim=1) >= FLOW_MIN_PX
     if s > 1:
         size = -(-win // s) * s
         feats = F.avg_pool2d(F.pad(feats, (0, size - win, 0, size - win)), s)
+        if moves is not None and bool(moves.any()):
+            flow = F.avg_pool2d(F.pad(flow, (0, size - win, 0, size - win)), s) / s
         kern = reduce_kernel(kern, s)
         slope = None if slope is None else reduce_kernel(slope, s)
+    if moves is not None:
+        feats = _flow_where_it_moves(feats, flow, moves)
     k, n = kern.shape[-1], feats.shape[-1]
     fs = next_fast_len(n + k - 1)
     fx = torch.fft.rfft2(feats, s=(fs, fs))
@@ -269,6 +281,31 @@ def _scatter(feats: torch.Tensor, kern: torch.Tensor, which: torch.Tensor, s: in
     if s > 1:
         out = F.interpolate(out, scale_factor=s, mode="bilinear", align_corners=False)[..., :win, :win]
     return out
+
+
+def flow_warp(feats: torch.Tensor, flow: torch.Tensor) -> torch.Tensor:
+    """``feats`` ``(M, C, h, w)`` sampled at ``p - flow(p)`` (bilinear; the window's edge
+    repeated beyond it), ``flow`` ``(M, 2, h, w)`` in px (x right, y down): to first order,
+    the light of each source pixel moved by the flow at its destination. A backward warp does not
+    scale what it moves; the drift's colour gain (:meth:`LensBokeh.colour_gains`) is its Jacobian."""
+    _, _, h, w = feats.shape
+    xs = (torch.arange(w, device=feats.device, dtype=feats.dtype) * 2.0 + 1.0) / w - 1.0  # pixel centres, align_corners=False
+    ys = (torch.arange(h, device=feats.device, dtype=feats.dtype) * 2.0 + 1.0) / h - 1.0
+    grid = torch.stack([xs[None, None, :] - flow[:, 0] * (2.0 / w), ys[None, :, None] - flow[:, 1] * (2.0 / h)], dim=-1)
+    return F.grid_sample(feats, grid, mode="bilinear", padding_mode="border", align_corners=False)
+
+
+def _flow_where_it_moves(feats: torch.Tensor, flow: torch.Tensor, moves: torch.Tensor) -> torch.Tensor:
+    """:func:`flow_warp` of the windows of ``feats`` ``(M, C, h, w)`` where ``moves`` ``(M,)``
+    (their light moves by at least ``FLOW_MIN_PX`` somewhere), by ``flow`` ``(M, 2, h, w)``; the
+    others unchanged."""
+    if bool(moves.all()):
+        return flow_warp(feats, flow)
+    if not bool(moves.any()):
+        return feats
+    feats = feats.clone()
+    feats[moves] = flow_warp(feats[moves], flow[moves])
+    return feats
 
 
 def _in_focus_light(rgb: torch.Tensor, pos: torch.Tensor, src: torch.Tensor, active: torch.Tensor) -> torch.Tensor:
@@ -448,21 +485,11 @@ class LensBokeh(nn.Module):
         window = window.expand(batch, 4)
         return self.pupils_at(field_positions(layout, height, width, window.to(device=device, dtype=dtype)))
 
-    def drift_lattice(self, height: int, width: int, window: torch.Tensor | None = None,
-                      batch: int = 1) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """The divergence of the pupils' centroid across the frame, ``d mu_x / d col + d mu_y / d
-        row`` in aperture radii per px (side, channel), on the nodes of a lattice fixed on the
-        sensor (``DRIFT_NODE_SPACING`` field units apart) that a ``height x width`` frame on the
-        sensor ``window`` ``(B, 4)`` reaches, and each pixel's weights on them:
-        ``(nodes (B, 2, 3, Gy, Gx), rows (B, H, Gy), cols (B, W, Gx))``; the drift at pixel (i, j)
-        is ``sum rows[i, y] nodes[.., y, x] cols[j, x]`` (bilinear), the same wherever the frame's
-        window lies, so a crop gets the drift the whole frame has there.
-
-        Where the pupil changes over the field (a cat-eye), a blur's centroid drifts by its radius
-        times :func:`pupil_centroids`, so defocused light flows across the frame: a plane of one
-        colour comes out brighter where the flow converges. A tile's pupil is constant over the
-        tile; this slope at every pixel (:meth:`drift_map`) gives back the flow's first-order
-        effect (:meth:`colour_gains`)."""
+    def _field_lattice(self, height: int, width: int, window: torch.Tensor | None,
+                       batch: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The lattice of :meth:`drift_lattice` that a ``height x width`` frame on the sensor
+        ``window`` ``(B, 4)`` reaches: ``(node positions (1, Gy Gx, 2) in field units, rows
+        (B, H, Gy), cols (B, W, Gx), field units per px (B, 2), (Gy, Gx))``."""
         device, dtype = self.pupil_shared.device, self.pupil_shared.dtype
         if window is None:
             window = torch.tensor([[0.0, 0.0, 1.0, 1.0]], device=device, dtype=dtype)
@@ -479,13 +506,53 @@ class LensBokeh(nn.Module):
             weights.append((1.0 - (field[..., None] - at).abs() / DRIFT_NODE_SPACING).clamp_min(0.0))  # (B, size, G)
         (nx, ny), (cols, rows) = nodes, weights
         pos = torch.stack(torch.broadcast_tensors(nx[None, :], ny[:, None]), dim=-1).reshape(1, -1, 2)  # (1, Gy Gx, 2)
+        return pos, rows, cols, per_px, (len(ny), len(nx))
+
+    def drift_lattice(self, height: int, width: int, window: torch.Tensor | None = None,
+                      batch: int = 1) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The divergence of the pupils' centroid across the frame, ``d mu_x / d col + d mu_y / d
+        row`` in aperture radii per px (side, channel), on the nodes of a lattice fixed on the
+        sensor (``DRIFT_NODE_SPACING`` field units apart) that a ``height x width`` frame on the
+        sensor ``window`` ``(B, 4)`` reaches, and each pixel's weights on them:
+        ``(nodes (B, 2, 3, Gy, Gx), rows (B, H, Gy), cols (B, W, Gx))``; the drift at pixel (i, j)
+        is ``sum rows[i, y] nodes[.., y, x] cols[j, x]`` (bilinear), the same wherever the frame's
+        window lies, so a crop gets the drift the whole frame has there.
+
+        Where the pupil changes over the field (a cat-eye), a blur's centroid drifts by its radius
+        times :func:`pupil_centroids`, so defocused light flows across the frame: a plane of one
+        colour comes out brighter where the flow converges. A tile's pupil is constant over the
+        tile; this slope at every pixel (:meth:`drift_map`) gives back the flow's first-order
+        effect (:meth:`colour_gains`)."""
+        pos, rows, cols, per_px, (gy, gx) = self._field_lattice(height, width, window, batch)
+        device, dtype = pos.device, pos.dtype
         steps = FIELD_DELTA * torch.tensor([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]], device=device, dtype=dtype)
         # the four neighbours of every node in one evaluation: (4, nodes, 2, 3, 2)
         mu = pupil_centroids(self.pupils_at(pos + steps[:, None])).reshape(4, -1, 2, 3, 2)
         slope_x = (mu[0, ..., 0] - mu[1, ..., 0]) / (2.0 * FIELD_DELTA)  # (nodes, 2, 3) per field unit
         slope_y = (mu[2, ..., 1] - mu[3, ..., 1]) / (2.0 * FIELD_DELTA)
         div = slope_x * per_px[:, 0, None, None, None] + slope_y * per_px[:, 1, None, None, None]  # (B, nodes, 2, 3)
-        return div.unflatten(1, (len(ny), len(nx))).permute(0, 3, 4, 1, 2), rows, cols
+        return div.unflatten(1, (gy, gx)).permute(0, 3, 4, 1, 2), rows, cols
+
+    def centroid_lattice(self, height: int, width: int, window: torch.Tensor | None = None,
+                         batch: int = 1) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The pupils' centroid (:func:`pupil_centroids`, the channels' mean; aperture radii) on
+        :meth:`drift_lattice`'s nodes: ``(nodes (2, 2, Gy, Gx) as (side, x / y), rows (B, H, Gy),
+        cols (B, W, Gx))``; bilinear in between, as the drift."""
+        pos, rows, cols, _, (gy, gx) = self._field_lattice(height, width, window, batch)
+        mu = pupil_centroids(self.pupils_at(pos))[0].mean(dim=2)  # (nodes, 2, 2)
+        return mu.unflatten(0, (gy, gx)).permute(2, 3, 0, 1), rows, cols
+
+    def centroid_offsets(self, layout: TileLayout, pupils: torch.Tensor, height: int, width: int,
+                         window: torch.Tensor | None = None, batch: int = 1) -> torch.Tensor:
+        """``(B T, 2, 2, win, win)`` (side, x / y): how far (aperture radii) each window pixel's
+        own pupil centroid (:meth:`centroid_lattice`) lies from its tile's, whose pupils are
+        ``pupils`` ``(B T, 2, 3, P, P)``: :func:`flow_warp`'s flow in units of the CoC radius."""
+        nodes, rows, cols = self.centroid_lattice(height, width, window, batch)
+        at = torch.einsum("bhy,scyx,bwx->bschw", rows, nodes, cols).flatten(1, 2)  # (B, 4, H, W)
+        win = layout.window
+        at = tile(at, layout).view(-1, layout.num_tiles, 2, 2, win, win).flatten(0, 1)
+        centre = pupil_centroids(pupils).mean(dim=2)  # (B T, 2, 2)
+        return at - centre[..., None, None]
 
     def drift_map(self, height: int, width: int, window: torch.Tensor | None = None, batch: int = 1) -> torch.Tensor:
         """``(B, 2, 3, H, W)``: :meth:`drift_lattice` at every pixel."""
@@ -660,6 +727,10 @@ class LensBokeh(nn.Module):
         if self.pupils_vary():  # else the drift is exactly zero: no map, every gain 1
             drift = self.drift_map(height, width, None if window is None else window[:1] if shared else window, 1 if shared else b)
             drift = tile(drift.flatten(1, 2), layout).view(-1, 2, 3, win, win)  # (B' T, 2, 3, win, win)
+        offsets = None  # where each pixel's pupil centroid lies from its tile's (model.field_flow)
+        if cfg.field_flow and drift is not None:
+            offsets = self.centroid_offsets(layout, pupils, height, width, None if window is None else window[:1] if shared
+                                            else window, 1 if shared else b)  # (B' T, 2, 2, win, win)
         coc_flat = coc.reshape(b * n_t, win, win)
         rgb_flat = rgb.reshape(b * n_t, 3, win, win)
         scales = scales or {}
@@ -690,7 +761,9 @@ class LensBokeh(nn.Module):
                 if hermite:  # the slope's weights on the same pixels, with the same side mask
                     ws = (g_slope * side_mask).reshape(b * n_t, 1, win, win)[idx]
                     feats = torch.cat([feats, colour * ws, ws], dim=1)  # (M, 8, win, win)
-                out = _scatter(feats, kern[:, side], which, scales.get(n, 1), None if slope is None else slope[:, side])
+                # the CoC radius (the channels' mean, point-reflected in front) x the offset
+                flow = None if offsets is None else self.gain_slopes(float(diameters[n]))[side].mean() * offsets[which, side]
+                out = _scatter(feats, kern[:, side], which, scales.get(n, 1), None if slope is None else slope[:, side], flow)
                 bw = bucket_weights(sign * float(diameters[n]), coc_flat[idx], self.occlusion_margin(float(diameters[n])))
                 contrib = bw.permute(1, 0, 2, 3).unsqueeze(2) * out.unsqueeze(1)  # (M, 3, 6, win, win)
                 # one band at a time: memory stays O(image), not O(image x bands); in place, so no
