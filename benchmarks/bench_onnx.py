@@ -58,7 +58,7 @@ def make_checkpoint(data: Path, out: Path, minutes: float) -> Path:
     subprocess.run([sys.executable, "train.py", "configs/quickstart.toml", "--overwrite", f"data.roots=['{data}']",
                     "data.test_fraction=0.2",
                     "model.tile=96", "model.overlap=24", "train.steps=100000", "train.lr=1e-3", "model.architecture='paper'",
-                    "train.pupil_tv=0", "train.pupil_chroma=0",  # no pupils to regularise
+                    "train.pupil_tv=0", "train.pupil_chroma=0", "train.pupil_field_spread=0",  # no pupils to regularise
                     "train.lr_schedule='constant'",
                     "train.eval_every=100000", "train.checkpoint_every=50", f"train.out_dir='{out}'",
                     "--time-limit", str(minutes)], check=True, cwd=ROOT)

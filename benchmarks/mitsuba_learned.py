@@ -1,6 +1,7 @@
 """The learned lens on physically rendered data, where the layered scatter is only an approximation.
 
-    python benchmarks/mitsuba_learned.py [--scenes 24] [--size 128] [--minutes 15] [--spp 256] [--test-spp 2048] [KEY=VALUE ...]
+    python benchmarks/mitsuba_learned.py [--scenes 24] [--size 128] [--minutes 15] [--spp 256] [--test-spp 2048]
+        [--loss-pool 2] [KEY=VALUE ...]
 
 1. Renders (once; finished scenes are skipped) a Mitsuba 3 focal-stack dataset of non-planar
    procedural scenes (tilted textured rectangles, spheres, boxes, HDR point lights; 7-blade
@@ -10,8 +11,10 @@
    it) into ``<data>_test<spp>``: at 256 spp the targets' noise (median 0.0125 RMS, tone-mapped
    display units) is as large as the differences between the best methods; 0 skips it.
 3. Trains the default network on the training split for ``--minutes`` (``configs/quickstart.toml``
-   with the tiles scaled to the image: size/4 px cores, size/8 px overlap; ``KEY=VALUE``
-   overrides go to ``train.py`` after these, e.g. ``train.pupil_tv=1e-3``).
+   with the tiles scaled to the image: size/4 px cores, size/8 px overlap, and
+   ``train.loss_pool = --loss-pool``: the renders' noise would otherwise pull the learned blur
+   small, ``docs/network.md``; ``KEY=VALUE`` overrides go to ``train.py`` after these, e.g.
+   ``train.pupil_tv=1e-3``).
 4. Evaluates the checkpoint next to every classical baseline of ``neuralbokeh.evaluation.evaluate`` on the
    held-out split (``report/``: ``report.md``, error-vs-runtime plot, image grids) and on its
    clean render (``report_clean/``), and prints both.
@@ -42,6 +45,7 @@ def main() -> None:
     p.add_argument("--spp", type=int, default=256)
     p.add_argument("--test-spp", type=int, default=2048, help="spp of the held-out scenes' clean render (0: none)")
     p.add_argument("--minutes", type=float, default=15.0)
+    p.add_argument("--loss-pool", type=int, default=2, help="train.loss_pool: px blocks the loss averages in linear light (1: pixels)")
     p.add_argument("--data", type=Path, default=ROOT / "data" / "mitsuba_lens")
     p.add_argument("--out", type=Path, default=ROOT / "runs" / "mitsuba_lens")
     p.add_argument("overrides", nargs="*", metavar="KEY=VALUE", help="training config overrides")
@@ -55,7 +59,7 @@ def main() -> None:
         run(*render, "--out", str(clean), "--spp", str(args.test_spp), "--aif-spp", str(max(args.test_spp // 4, 1)),
             "--only", *(str(int(s.name.removeprefix("scene_"))) for s in held_out))
     run("train.py", "configs/quickstart.toml", "--overwrite", f"data.roots=['{args.data}']", "data.test_fraction=0.25",
-        f"model.tile={args.size // 4}", f"model.overlap={args.size // 8}", "train.steps=1000000",
+        f"model.tile={args.size // 4}", f"model.overlap={args.size // 8}", f"train.loss_pool={args.loss_pool}", "train.steps=1000000",
         "train.lr_schedule='constant'", "train.eval_every=1000000", "train.checkpoint_every=200",
         f"train.out_dir='{args.out}'", *args.overrides, "--time-limit", str(args.minutes))
     run("-m", "neuralbokeh.evaluation", "--data", str(args.data), "--test-fraction", "0.25",

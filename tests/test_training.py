@@ -1,5 +1,6 @@
 import dataclasses
 import json
+import math
 import os
 import subprocess
 import sys
@@ -127,6 +128,14 @@ def test_config_errors(tmp_path):
         load_config(good, ["train.pupil_chroma=nan"])
     with pytest.raises(ValueError, match=r"train.pupil_chroma needs the lens architecture .*'paper'"):
         load_config(good, ["train.pupil_chroma=0.1", "train.pupil_tv=0", "model.architecture='paper'"])
+    with pytest.raises(ValueError, match=r"train.pupil_field_spread needs the lens architecture .*'paper'"):
+        load_config(good, ["train.pupil_tv=0", "train.pupil_chroma=0", "model.architecture='paper'"])
+    with pytest.raises(ValueError, match=r"train.loss_pool must be an integer >= 1 \(px\), got 0"):
+        load_config(good, ["train.loss_pool=0"])
+    with pytest.raises(TypeError, match=r"train.loss_pool must be int, got 2.5"):
+        load_config(good, ["train.loss_pool=2.5"])
+    with pytest.raises(ValueError, match=r"train.loss_pool = 2 needs train.loss = 'image' .*got 'tile'"):
+        load_config(good, ["train.loss_pool=2", "train.loss='tile'"])
 
 
 # --- training ------------------------------------------------------------------------------------
@@ -386,11 +395,51 @@ def test_the_ssim_term_is_the_evaluation_ssim_on_the_pixels_the_loss_keeps():
         torch.testing.assert_close(kept, want, rtol=1e-5, atol=1e-7)
 
 
-def _fit_one_band(truth: ApertureModel, scale: float, steps: int) -> tuple[torch.Tensor, torch.Tensor, float]:
+def test_a_pooled_loss_averages_in_linear_light_over_the_kept_pixels():
+    """``train.loss_pool``: MSE and SSIM of the images averaged over k x k px blocks in linear
+    light (a partial block at the edge averages what it holds), the crop weights averaged alike;
+    the block mean of a noisy target is about k^2 times less darkened by the normalisation."""
+    from kornia.metrics import ssim
+
+    norm = Normalization()
+    cfg = ModelConfig(tile=16, overlap=4).resolved(8.0)
+    model = build_model(cfg, Contract(26, 26, norm, 8.0, 8.0)).eval()
+    g = torch.Generator().manual_seed(5)
+    x = torch.cat([torch.rand(2, 3, 26, 26, generator=g) * 1.8 - 0.9, torch.rand(2, 1, 26, 26, generator=g) * 2 - 1], 1)
+    y = torch.rand(2, 3, 26, 26, generator=g) * 1.8 - 0.9
+    w = torch.zeros(2, 1, 26, 26)
+    w[..., 4:20, 4:24] = 1.0
+    with torch.no_grad():
+        pred = model(x)
+        got = loop_module.compute_loss(model, x, y, "image", weights=w, ssim_weight=0.5, pool=4, normalization=norm)
+    def pooled(n):  # 26 px: six whole blocks and one of 2 px
+        lin = norm.decode(n.double())
+        cols = torch.stack([lin[..., :, j * 4:j * 4 + 4].mean(-1) for j in range(7)], -1)
+        return norm.encode(torch.stack([cols[..., i * 4:i * 4 + 4, :].mean(-2) for i in range(7)], -2)).float()
+    pw = torch.stack([torch.stack([w[..., i * 4:i * 4 + 4, j * 4:j * 4 + 4].mean((-2, -1)) for j in range(7)], -1)
+                      for i in range(7)], -2)
+    p4, y4 = pooled(pred), pooled(y)
+    s_map = 1.0 - ssim((p4 + 1) / 2, (y4 + 1) / 2, 11)
+    want = (((p4 - y4).square() + 0.5 * s_map) * pw).sum() / (pw.sum() * 3)
+    torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-7)
+    # the bias: a flat 0.05 under unit relative noise (gamma, heavy-tailed like a render's)
+    torch.manual_seed(0)
+    clean = torch.full((1, 3, 256, 256), 0.05, dtype=torch.float64)
+    noisy = clean * torch.distributions.Gamma(torch.ones_like(clean), torch.ones_like(clean)).sample()
+    clean_n = float(norm.encode(torch.tensor(0.05, dtype=torch.float64)))
+    bias = [float(loop_module.pool_linear(norm.encode(noisy), k, norm).mean()) - clean_n for k in (1, 4)]
+    assert bias[0] < -0.02 and bias[0] / 8 < bias[1] < 0.0  # darker on average; 16x less to first order (measured 13x)
+
+
+def _fit_one_band(truth: ApertureModel, scale: float, steps: int, noise: float = 0.0,
+                  pool: int = 1) -> tuple[torch.Tensor, torch.Tensor, float]:
     """Train an untrained disk-pupil lens network, with the quickstart's optimiser settings, on
     sparse highlights over a dim texture blurred at one constant CoC ``d`` (px) by the ``truth``
-    aperture scaled by ``scale`` (its rim at ``scale`` aperture radii). Returns the learned and
-    the true kernel at ``d`` (behind the focus plane, green, sensor centre; ``(k, k)`` each) and d."""
+    aperture scaled by ``scale`` (its rim at ``scale`` aperture radii). ``noise``: the targets'
+    zero-mean noise in linear light, relative (each pixel times a mean-1 gamma variate of that
+    standard deviation: heavy-tailed, as a render's); ``pool``: ``train.loss_pool``. Returns the
+    learned and the true kernel at ``d`` (behind the focus plane, green, sensor centre;
+    ``(k, k)`` each) and d."""
     import torch.nn.functional as F
 
     from neuralbokeh.training.config import TrainSection
@@ -409,6 +458,9 @@ def _fit_one_band(truth: ApertureModel, scale: float, steps: int) -> tuple[torch
     aif = aif + (torch.rand(8, 1, size, size, generator=g) < 0.01) * 20.0 * torch.rand(8, 3, size, size, generator=g)
     k = true_k.shape[-1]
     target = F.conv2d(aif.reshape(-1, 1, size, size), true_k.flip(-2, -1)[None, None], padding=k // 2).view(8, 3, size, size)
+    if noise > 0:
+        shape = torch.full_like(target, 1.0 / noise**2)
+        target = target * torch.distributions.Gamma(shape, shape).sample()
     norm = model.contract.normalization
     x = torch.cat([norm.encode(aif), torch.full((8, 1, size, size), d / c_max)], 1)
     keep = torch.zeros(8, 1, size, size)
@@ -419,7 +471,7 @@ def _fit_one_band(truth: ApertureModel, scale: float, steps: int) -> tuple[torch
         group["lr"] = group["lr_scale"] * train_cfg["lr"]
     for _ in range(steps):
         opt.zero_grad()
-        compute_loss(model, x, norm.encode(target), "image", None, keep).backward()
+        compute_loss(model, x, norm.encode(target), "image", None, keep, pool=pool, normalization=norm).backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), train_cfg["grad_clip"])
         opt.step()
     with torch.no_grad():
@@ -434,28 +486,38 @@ def test_a_disk_is_barely_rough_and_not_coloured_at_all():
     disk = build_model(ModelConfig(tile=16, overlap=4, pupil_init="disk").resolved(9.0), contract)
     assert float(disk.pupil_roughness().detach()) == pytest.approx(0.14, abs=0.02)
     assert float(disk.pupil_chroma().detach()) == pytest.approx(0.0, abs=1e-6)  # float32 rounding of the grey mean
+    assert float(disk.pupil_field_spread().detach()) == 0.0  # no field correction at the start
+    with torch.no_grad():  # one node of 25 at twice the lens-wide transmission everywhere: 1/25
+        disk.pupil_field[0, 0].fill_(math.log(2.0))
+    assert float(disk.pupil_field_spread().detach()) == pytest.approx(0.04, rel=1e-5)
     with torch.no_grad():  # CoC scales 1.04 / 1 / 0.96: the mean absolute deviation of their logs
         disk.log_channel_scale.copy_(torch.log(torch.tensor([1.04, 1.0, 0.96])))
     assert float(disk.pupil_chroma().detach()) == pytest.approx(0.0267, abs=2e-4)
 
 
-@pytest.mark.parametrize(("term", "measure", "start"), [("pupil_tv", "pupil_roughness", 1.0), ("pupil_chroma", "pupil_chroma", 0.5)])
+@pytest.mark.parametrize(("term", "measure", "start"), [("pupil_tv", "pupil_roughness", 1.0), ("pupil_chroma", "pupil_chroma", 0.5),
+                                                   ("pupil_field_spread", "pupil_field_spread", 0.5)])
 def test_a_pupil_term_smooths_a_speckled_pupil_in_training(tiny_dataset, tmp_path, term, measure, start):
-    """``train.pupil_tv`` / ``train.pupil_chroma``: trained from a lens-wide pupil speckled
-    apart in each channel, the term leaves it smoother / its channels closer than the same
-    steps without it."""
+    """``train.pupil_tv`` / ``train.pupil_chroma`` / ``train.pupil_field_spread``: trained from
+    pupils speckled apart in each channel (lens-wide; for the field spread, at each field node),
+    the term leaves them smoother / their channels closer / the nodes closer to the lens-wide
+    pupil than the same steps without it."""
     seen = {}
     for weight in (0.0, 1.0):
-        cfg = _config(tmp_path / str(weight), tiny_dataset, **{term: weight}, lr=0.03, steps=6, eval_every=100)
+        field_lr = {"field_lr_scale": 1.0} if term == "pupil_field_spread" else {}  # the field learns at lr, not lr / 4
+        cfg = _config(tmp_path / str(weight), tiny_dataset, **{term: weight}, lr=0.03, steps=6, eval_every=100, **field_lr)
         torch.manual_seed(0)
         with torch.no_grad():
-            noise = torch.randn(2, 3, 48, 48, generator=torch.Generator().manual_seed(1))
+            noise = torch.randn(25 if term == "pupil_field_spread" else 1, 2, 3, 48, 48, generator=torch.Generator().manual_seed(1))
         real_build = loop_module.build_model
 
-        def speckled(config, contract, noise=noise):  # the run starts from a speckled lens-wide pupil
+        def speckled(config, contract, noise=noise):  # the run starts from a speckled pupil
             model = real_build(config, contract)
             with torch.no_grad():
-                model.pupil_shared.add_(noise)
+                if term == "pupil_field_spread":  # each node of the 5 x 5 field grid its own
+                    model.pupil_field.add_(noise.view_as(model.pupil_field))
+                else:
+                    model.pupil_shared.add_(noise[0])
             return model
 
         loop_module.build_model = speckled
@@ -465,7 +527,8 @@ def test_a_pupil_term_smooths_a_speckled_pupil_in_training(tiny_dataset, tmp_pat
             loop_module.build_model = real_build
         model, _ = load_model(tmp_path / str(weight) / "run" / "checkpoint.pt")
         seen[weight] = float(getattr(model, measure)().detach())
-    assert seen[1.0] < 0.9 * seen[0.0], seen  # measured 1.88 against 2.16 (rough), 0.52 against 0.63 (colour)
+    assert seen[1.0] < 0.9 * seen[0.0], seen  # measured 1.88 against 2.16 (rough), 0.52 against 0.63 (colour),
+    # 0.91 against 1.14 (field)
     assert seen[0.0] > start, seen  # the start really is speckled
 
 

@@ -29,7 +29,7 @@ log = logging.getLogger(__name__)
 
 VARIANTS: dict[str, list[str]] = {
     "full": [],
-    "paper": ["model.architecture='paper'", "train.lr=1e-3", "train.pupil_tv=0", "train.pupil_chroma=0"],
+    "paper": ["model.architecture='paper'", "train.lr=1e-3", "train.pupil_tv=0", "train.pupil_chroma=0", "train.pupil_field_spread=0"],
     "fixed3_kernels": ["model.kernel_sizes='fixed3'"],
     "no_tiling": ["model.tiling='none'"],
     "no_overlap": ["model.tiling='no_overlap'"],

@@ -595,6 +595,17 @@ class LensBokeh(nn.Module):
         pupils = ((t - grey).abs().mean(dim=(2, 3, 4)) / grey.mean(dim=(2, 3, 4)).clamp_min(_EPS)).mean()
         return pupils + (self.log_channel_scale - self.log_channel_scale.mean()).abs().mean()
 
+    def pupil_field_spread(self) -> torch.Tensor:
+        """Scalar, 0 for a lens whose pupil does not change over the field beyond the cat-eye's
+        circle (which is built in, not learned): how far the pupils at the field grid's nodes
+        differ from the lens-wide one, ``mean |t_node - t| / mean t`` per side and channel, over
+        the nodes. A correction the data does not show is noise fitted per region."""
+        g, p = self.config.field_grid, self.config.pupil_size
+        shared = torch.exp(self.pupil_shared)  # (2, 3, P, P)
+        nodes = torch.exp(self.pupil_shared + self.pupil_field.reshape(g * g, 2, 3, p, p))
+        spread = (nodes - shared).abs().mean(dim=(-2, -1)) / shared.mean(dim=(-2, -1)).clamp_min(_EPS)
+        return spread.mean()
+
     def gain_slopes(self, diameter: float) -> torch.Tensor:
         """``(2, 3)``: band ``diameter``'s (px) CoC radius per channel, point-reflected in front of
         the focus (side 0 behind, 1 in front): the slope of :meth:`colour_gains` in the drift."""

@@ -68,6 +68,11 @@ class TrainSection:
             the MSE, >= 0 (0: the MSE alone, as the paper). The MSE rewards a blur that is right
             on average; SSIM also asks for the structure (e.g. how much of a fine texture survives
             a given CoC), where the MSE alone traded it away for PSNR.
+        loss_pool: px, an integer >= 1: the loss (MSE and SSIM) is taken on the images averaged
+            over ``loss_pool`` x ``loss_pool`` px blocks in linear light (1: on the pixels). A
+            target's noise biases a loss on normalised pixels towards a smaller blur (the
+            normalisation is concave: see :func:`~neuralbokeh.training.loop.pool_linear`); the
+            block mean divides that bias by about ``loss_pool ** 2``. ``loss = "image"`` only.
         pupil_tv: weight of the lens network's pupil roughness
             (:meth:`~neuralbokeh.networks.lens.LensBokeh.pupil_roughness`, the total variation of
             the transmission over its mean) added to the loss, >= 0 (0: off). An aperture is flat
@@ -77,6 +82,11 @@ class TrainSection:
             channels' pupils and CoC scales differ) added to the loss, >= 0 (0: off). A lens's
             colours differ only as far as the data shows (lateral and axial colour); channels
             learned apart from noise put colour fringes on highlights.
+        pupil_field_spread: weight of the lens network's field spread
+            (:meth:`~neuralbokeh.networks.lens.LensBokeh.pupil_field_spread`: how far the pupils
+            at the field grid's nodes differ from the lens-wide pupil) added to the loss, >= 0
+            (0: off). A lens's pupil changes over the field as far as the data shows; corrections
+            learned per region from a few noisy renders fit their noise.
         lr_schedule: ``"cosine"`` (to 10% of lr) or ``"constant"``, after ``warmup_steps``.
         warmup_steps: linear warm-up steps.
         grad_clip: clip the gradient norm to this value (0 = off).
@@ -96,8 +106,10 @@ class TrainSection:
     lr_kernel_scaling: str = "fan_in"
     field_lr_scale: float = 0.25
     ssim_weight: float = 0.0
+    loss_pool: int = 1
     pupil_tv: float = 0.0
     pupil_chroma: float = 0.0
+    pupil_field_spread: float = 0.0
     warmup_steps: int = 20
     grad_clip: float = 1.0
     loss: str = "image"
@@ -134,7 +146,11 @@ class TrainConfig:
         if isinstance(t.ssim_weight, bool) or not (isinstance(t.ssim_weight, (int, float)) and math.isfinite(t.ssim_weight)
                                                      and t.ssim_weight >= 0.0):
             raise ValueError(f"train.ssim_weight must be a finite number >= 0, got {t.ssim_weight!r}")
-        for name in ("pupil_tv", "pupil_chroma"):
+        if isinstance(t.loss_pool, bool) or not isinstance(t.loss_pool, int) or t.loss_pool < 1:
+            raise ValueError(f"train.loss_pool must be an integer >= 1 (px), got {t.loss_pool!r}")
+        if t.loss_pool > 1 and t.loss != "image":
+            raise ValueError(f"train.loss_pool = {t.loss_pool} needs train.loss = 'image' (the reassembled image), got {t.loss!r}")
+        for name in ("pupil_tv", "pupil_chroma", "pupil_field_spread"):
             w = getattr(t, name)
             if isinstance(w, bool) or not (isinstance(w, (int, float)) and math.isfinite(w) and w >= 0.0):
                 raise ValueError(f"train.{name} must be a finite number >= 0, got {w!r}")

@@ -6,8 +6,10 @@ evaluation and checkpoints. Data order is a pure function of (seed, step), which
 ``resume`` continue exactly where a run stopped.
 
 Loss: MSE of the reassembled image in the normalised space (``loss = "tile"``: MSE of the
-un-blended tiles, the paper's ablation). A step whose loss or gradient is not finite is skipped
-and counted; ``max_nonfinite`` in a row abort with the step and the batch's scenes named.
+un-blended tiles, the paper's ablation), with ``loss_pool`` on blocks averaged in linear light
+(:func:`pool_linear`), plus the SSIM term and the pupil priors the config weighs. A step whose
+loss or gradient is not finite is skipped and counted; ``max_nonfinite`` in a row abort with the
+step and the batch's scenes named.
 
 Evaluation (held-out scenes): PSNR and SSIM (kornia) of the normalised images mapped to [0, 1]
 (``(n + 1) / 2``), next to three baselines on the same samples, computed once: the identity (the
@@ -32,6 +34,7 @@ from typing import Any, Iterator
 
 import torch
 import torch.distributed as dist
+import torch.nn.functional as F
 from kornia.metrics import psnr, ssim
 from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data.distributed import DistributedSampler
@@ -64,17 +67,25 @@ def run_model(model: torch.nn.Module, x: torch.Tensor, window: torch.Tensor | No
 
 def compute_loss(model: torch.nn.Module, x: torch.Tensor, y: torch.Tensor, kind: str,
                  window: torch.Tensor | None = None, weights: torch.Tensor | None = None,
-                 ssim_weight: float = 0.0) -> torch.Tensor:
+                 ssim_weight: float = 0.0, pool: int = 1, normalization: Normalization | None = None) -> torch.Tensor:
     """MSE of the reassembled image (``"image"``) or of the un-blended tiles (``"tile"``), over
     the pixels where ``weights`` ``(B, 1, H, W)`` is 1 (all when None; see :func:`loss_weights`),
     plus ``ssim_weight`` x (1 - SSIM) over the same pixels (the images mapped to [0, 1], 11 px
-    window: the evaluation's SSIM)."""
+    window: the evaluation's SSIM). ``pool`` > 1 (``"image"`` only) takes both on the images
+    averaged over ``pool`` x ``pool`` px blocks in linear light (see :func:`pool_linear`;
+    ``normalization``: the data's, default :class:`Normalization`)."""
     if kind == "tile":
         inner = model.module if isinstance(model, DistributedDataParallel) else model
         pred, y = run_model(model, x, window, return_tiles=True), inner.tile_targets(y)
         weights = None if weights is None else inner.tile_targets(weights)
     else:
         pred = run_model(model, x, window)
+    if pool > 1:
+        if kind == "tile":
+            raise ValueError(f"train.loss_pool = {pool} needs train.loss = 'image', got 'tile'")
+        norm = normalization or Normalization()
+        pred, y = pool_linear(pred, pool, norm), pool_linear(y, pool, norm)
+        weights = None if weights is None else F.avg_pool2d(weights, pool, ceil_mode=True)
     def mean(per_pixel: torch.Tensor) -> torch.Tensor:  # over the kept pixels
         if weights is None:
             return per_pixel.mean()
@@ -84,6 +95,22 @@ def compute_loss(model: torch.nn.Module, x: torch.Tensor, y: torch.Tensor, kind:
     if ssim_weight > 0:
         loss = loss + ssim_weight * mean(1.0 - ssim((pred + 1) / 2, (y + 1) / 2, 11))
     return loss
+
+
+def pool_linear(n: torch.Tensor, pool: int, normalization: Normalization) -> torch.Tensor:
+    """Normalised images ``(B, C, H, W)`` averaged over ``pool`` x ``pool`` px blocks in linear
+    light, normalised again: ``(B, C, ceil(H / pool), ceil(W / pool))``.
+
+    Why: a target's noise (Monte Carlo, sensor) is zero-mean in linear light, but the
+    normalisation is concave, so a noisy pixel's normalised value is darker on average than its
+    clean one, most where the noise is large against the signal (a blurred highlight's rim). A
+    loss on normalised pixels then pays the lens to put less light there: a smaller blur. The
+    block mean divides that bias by about ``pool ** 2`` (the noise's variance) and keeps what
+    a blur's size changes. Computed in float64: decoding near the normalisation's highlight end
+    loses float32's precision.
+    """
+    lin = normalization.decode(n.double())
+    return normalization.encode(F.avg_pool2d(lin, pool, ceil_mode=True)).to(n.dtype)
 
 
 def crop_loss_margin(crop: list[int] | None, max_coc_px: float, margin: int | str = "auto") -> int:
@@ -415,7 +442,8 @@ class _Run:
         try:
             while self.step < last:
                 x, y, names, window, weights = self.batch()
-                loss, finite = _step(self.net, self.model, self.optimizer, x, y, window, weights, self.cfg, self.step, proc)
+                loss, finite = _step(self.net, self.model, self.optimizer, x, y, window, weights, self.cfg, self.step, proc,
+                                     self.train_ds.normalization)
                 self.skipped += not finite
                 consecutive = 0 if finite else consecutive + 1
                 if not finite:
@@ -462,20 +490,24 @@ class _Run:
 
 
 def _step(net: torch.nn.Module, model: torch.nn.Module, optimizer: torch.optim.Optimizer, x: torch.Tensor, y: torch.Tensor,
-          window: torch.Tensor, weights: torch.Tensor | None, cfg: TrainConfig, step: int, proc: _Process) -> tuple[float, bool]:
+          window: torch.Tensor, weights: torch.Tensor | None, cfg: TrainConfig, step: int, proc: _Process,
+          normalization: Normalization) -> tuple[float, bool]:
     """One optimiser step (skipped, on every rank, when any rank's loss or gradient is not
     finite); returns ``(loss, finite)``."""
     t = cfg.train
     for group in optimizer.param_groups:  # the schedule is a function of the step alone
         group["lr"] = group["lr_scale"] * t.lr * _lr_factor(step, cfg)
     optimizer.zero_grad(set_to_none=True)
-    loss = compute_loss(net, x, y, t.loss, window, weights, ssim_weight=t.ssim_weight)
+    loss = compute_loss(net, x, y, t.loss, window, weights, ssim_weight=t.ssim_weight, pool=t.loss_pool,
+                        normalization=normalization)
     if t.pupil_tv > 0 or t.pupil_chroma > 0:
         nodes = model.node_transmissions()  # once for both priors
         if t.pupil_tv > 0:
             loss = loss + t.pupil_tv * model.pupil_roughness(nodes)
         if t.pupil_chroma > 0:
             loss = loss + t.pupil_chroma * model.pupil_chroma(nodes)
+    if t.pupil_field_spread > 0:
+        loss = loss + t.pupil_field_spread * model.pupil_field_spread()
     loss.backward()
     finite = torch.tensor(
         [float(torch.isfinite(loss)) * float(all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None))],
