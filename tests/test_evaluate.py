@@ -8,7 +8,7 @@ import torch
 
 from neuralbokeh.core.apertures import ApertureModel, Polygon, ViewGrid
 from neuralbokeh.evaluation.evaluate import BASELINES, main, model_labels
-from neuralbokeh.evaluation.metrics import flip_hdr, image_metrics, pareto_front, tonemap_srgb
+from neuralbokeh.evaluation.metrics import flip_hdr, image_metrics, paired_by_scene, pareto_front, tonemap_srgb
 from neuralbokeh.render import scatter_defocus
 from neuralbokeh.render.baselines import gather_defocus, gaussian_defocus, pseudo_ray_trace
 
@@ -91,6 +91,24 @@ def test_metrics_against_hand_values():
     assert pareto_front([(1.0, 5.0), (2.0, 3.0), (3.0, 4.0), (10.0, 1.0)]) == [0, 1, 3]
 
 
+def test_methods_are_compared_scene_by_scene():
+    def per(values):  # two slices per scene
+        return [{"sample": f"scene_{i // 2:03d}#{i % 2}", "psnr_linear": v, "flip_hdr": -v / 100} for i, v in enumerate(values)]
+
+    # scene means: a = 11, 20, 30; b = 10, 22, 30 -> differences +1, -2, 0
+    a, b = per([10.0, 12.0, 20.0, 20.0, 29.0, 31.0]), per([10.0, 10.0, 22.0, 22.0, 30.0, 30.0])
+    psnr = paired_by_scene(a, b, "psnr_linear")
+    assert psnr["scenes"] == 3 and psnr["ahead"] == 1
+    assert psnr["median"] == pytest.approx(0.0) and psnr["mean"] == pytest.approx(-1 / 3)
+    assert -2.0 <= psnr["ci95"][0] < -1 / 3 < psnr["ci95"][1] <= 1.0  # a resampled mean stays within the differences
+    flip = paired_by_scene(a, b, "flip_hdr")  # lower is better: a's larger PSNR is a lower FLIP here
+    assert flip["ahead"] == 1 and flip["mean"] == pytest.approx(1 / 300)
+    with pytest.raises(ValueError, match="different scenes"):
+        paired_by_scene(a, b[:4], "psnr_linear")
+    with pytest.raises(ValueError, match="unknown metric 'psnr'"):
+        paired_by_scene(a, b, "psnr")
+
+
 def test_report_files_and_identity_row(tiny_dataset, busy_onnx, tmp_path):
     rc = main(["--data", str(tiny_dataset), "--models", str(busy_onnx), "--baselines", "all",
                "--out", str(tmp_path / "report"), "--repeats", "1", "--threads", "1", "--samples", "2"])
@@ -108,7 +126,11 @@ def test_report_files_and_identity_row(tiny_dataset, busy_onnx, tmp_path):
     got = report["methods"]["identity"]["per_sample"][0]
     assert got["psnr_srgb"] == pytest.approx(want["psnr_srgb"]) and got["flip_hdr"] == pytest.approx(want["flip_hdr"])
     assert all(m["ms_per_mp"] > 0 for m in report["methods"].values())
-    assert "| gather |" in (tmp_path / "report" / "report.md").read_text()
+    md = (tmp_path / "report" / "report.md").read_text()
+    assert "| gather |" in md and "busy.onnx against each method, scene by scene" in md
+    by_scene = report["by_scene"]["methods"]["identity"]["psnr_srgb"]
+    assert by_scene["scenes"] == 1 and by_scene["mean"] == pytest.approx(  # both samples are one scene's slices
+        report["methods"]["busy.onnx"]["psnr_srgb"] - report["methods"]["identity"]["psnr_srgb"])
     with pytest.raises(SystemExit, match="unknown baselines"):
         main(["--data", str(tiny_dataset), "--baselines", "bogus", "--out", str(tmp_path / "r2")])
 
@@ -141,10 +163,11 @@ def test_the_pupil_picture_shows_the_learned_pupil_beside_the_declared_aperture(
     (``pupil_init = "aperture"``, no cat-eye) shows, at the sensor's centre, exactly the
     reference panel; a learned cat-eye clips the corner's pupil on the side away from the
     centre; the CLI writes the sheet and refuses what it cannot show."""
+    from neuralbokeh.core.apertures.spec import parse_aperture
     from neuralbokeh.core.contract import Contract
     from neuralbokeh.core.io import read_image
     from neuralbokeh.core.normalization import Normalization
-    from neuralbokeh.evaluation.pupils import learned_pupils, reference_panel
+    from neuralbokeh.evaluation.pupils import learned_pupils, pupil_distance, reference_panel
     from neuralbokeh.evaluation.pupils import main as pupils_main
     from neuralbokeh.networks import ModelConfig, build_model
 
@@ -153,6 +176,13 @@ def test_the_pupil_picture_shows_the_learned_pupil_beside_the_declared_aperture(
     model = build_model(ModelConfig(tile=16, overlap=4, pupil_init="aperture", vignetting=False).resolved(9.0), contract)
     centre = learned_pupils(model, [(0.0, 0.0)])[0]
     np.testing.assert_allclose(centre, reference_panel(shape, model.config.pupil_size), atol=1.01e-3)  # the 1e-3 floor
+    ref = reference_panel(shape, model.config.pupil_size)
+    assert pupil_distance(centre, ref) < 0.01  # only the floor outside the polygon
+    assert pupil_distance(3.0 * ref, ref) == pytest.approx(0.0)  # brightness is not shape
+    left, right = ref * (np.arange(ref.shape[1]) < 24)[:, None], ref * (np.arange(ref.shape[1]) >= 24)[:, None]
+    assert pupil_distance(left, right) == pytest.approx(1.0)  # halves that share no sample
+    disk = reference_panel(parse_aperture("disk"), model.config.pupil_size)
+    assert 0.10 < pupil_distance(disk, ref) < 0.15  # a 7-gon in its circle: 1 - 7 sin(2 pi / 7) / (2 pi) = 0.129 outside
     views = reference_panel(ViewGrid(np.ones((3, 3))), 48)[..., 0]  # a light field's views: 9 points, not 9 cells
     assert (views > 0).sum() == 9 and views.sum() == pytest.approx(9.0)
     cat = build_model(ModelConfig(tile=16, overlap=4, pupil_init="aperture").resolved(9.0), contract)

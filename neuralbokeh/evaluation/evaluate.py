@@ -18,7 +18,8 @@ Per method and held-out sample: the metrics of ``neuralbokeh.evaluation.metrics`
 light and tone-mapped sRGB, HDR-FLIP) and the wall time per megapixel, the median of
 ``--repeats`` runs in this process with ``--threads`` threads. Writes ``report.json``,
 ``report.md``, ``error_vs_runtime.png`` (log time axis, Pareto front marked) and image grids
-(AIF | ground truth | each method, error maps below) for the median and the worst scene.
+(AIF | ground truth | each method, error maps below) for the median and the worst scene, and
+the first method against each other one scene by scene (``metrics.paired_by_scene``).
 """
 
 from __future__ import annotations
@@ -49,7 +50,7 @@ from ..render.baselines import gather_defocus, gaussian_defocus, pseudo_ray_trac
 from ..render.buckets import bucket_gather
 from ..render.lens_trace import lens_ray_trace
 from ..render.pyramid import pyramid_spread, tensor_filter
-from .metrics import image_metrics, pareto_front, tonemap_srgb
+from .metrics import image_metrics, paired_by_scene, pareto_front, tonemap_srgb
 
 log = logging.getLogger(__name__)
 BASELINES = ("identity", "gaussian", "gather", "raytrace", "buckets", "pyramid", "tensor", "lenstrace", "scatter")
@@ -210,7 +211,8 @@ def write_report(out: Path, result: dict[str, Any], samples: list[dict], info: d
     out.mkdir(parents=True, exist_ok=True)
     methods = result["methods"]
     names = list(methods)
-    written = [write_json(out / "report.json", {"info": info, "methods": methods})]
+    by_scene_lines, by_scene = scene_comparison(methods)
+    written = [write_json(out / "report.json", {"info": info, "methods": methods, "by_scene": by_scene})]
     cols = ["psnr_linear", "ssim_linear", "psnr_srgb", "ssim_srgb", "flip_hdr", "ms_per_mp"]
     what = {"test": "held-out", "train": "training", "all": "all"}.get(info.get("split", "test"), "")
     lines = [f"# Evaluation on {info['samples']} {what} samples ({info['data']})", "",
@@ -221,7 +223,7 @@ def write_report(out: Path, result: dict[str, Any], samples: list[dict], info: d
     for n in names:
         m = methods[n]
         lines.append(f"| {n} | " + " | ".join(f"{m[c]:.4f}" if "ssim" in c or "flip" in c else f"{m[c]:.2f}" for c in cols) + " |")
-    write_text(out / "report.md", "\n".join(lines) + "\n")
+    write_text(out / "report.md", "\n".join(lines + by_scene_lines) + "\n")
     written.append(out / "report.md")
 
     points = [(max(methods[n]["ms_per_mp"], 1e-3), methods[n]["flip_hdr"]) for n in names]
@@ -250,6 +252,36 @@ def write_report(out: Path, result: dict[str, Any], samples: list[dict], info: d
         path = _grid(plt, out, label, ref, samples[idx], names, result, idx)
         written.append(path)
     return written
+
+
+SCENE_KEYS = ("psnr_linear", "psnr_srgb", "flip_hdr")
+
+
+def scene_comparison(methods: dict[str, Any]) -> tuple[list[str], dict[str, Any]]:
+    """The first method against each other one, scene by scene: report.md lines and their figures.
+
+    Means over a few scenes hide that one scene can carry them; a reader needs how many scenes
+    each method wins and how wide the mean's interval is (``metrics.paired_by_scene``).
+    """
+    names = list(methods)
+    ref = names[0]
+    figures = {n: {k: paired_by_scene(methods[ref]["per_sample"], methods[n]["per_sample"], k) for k in SCENE_KEYS}
+               for n in names[1:]}
+    if not figures:
+        return [], {}
+    n_scenes = next(iter(figures.values()))[SCENE_KEYS[0]]["scenes"]
+    lines = ["", f"## {ref} against each method, scene by scene ({n_scenes} scenes)", "",
+             f"Per cell: scenes where {ref} is better / median and mean of ({ref} - method) over the scenes (a scene: "
+             "the mean of its samples) [95 % bootstrap interval of the mean, scenes resampled].", "",
+             "| method | PSNR lin dB | PSNR sRGB dB | FLIP |", "|---|---|---|---|"]
+    for n, row in figures.items():
+        cells = []
+        for k in SCENE_KEYS:
+            f, fmt = row[k], "+.4f" if k == "flip_hdr" else "+.2f"
+            cells.append(f"{f['ahead']}/{f['scenes']}, {f['median']:{fmt}}, {f['mean']:{fmt}} "
+                         f"[{f['ci95'][0]:{fmt}}, {f['ci95'][1]:{fmt}}]")
+        lines.append(f"| {n} | " + " | ".join(cells) + " |")
+    return lines, {"reference": ref, "methods": figures}
 
 
 ERROR_GAIN = 4.0  # error maps show ERROR_GAIN x |sRGB difference|: white = a difference of 1 / ERROR_GAIN

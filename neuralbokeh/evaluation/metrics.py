@@ -13,6 +13,8 @@ All inputs are linear scene-referred RGB ``(H, W, 3)``, finite and >= 0.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import torch
 from kornia.metrics import psnr, ssim
@@ -69,3 +71,34 @@ def pareto_front(points: list[tuple[float, float]]) -> list[int]:
         if not any((t2 <= t and e2 <= e) and (t2 < t or e2 < e) for j, (t2, e2) in enumerate(points) if j != i):
             front.append(i)
     return front
+
+
+HIGHER_IS_BETTER = {"psnr_linear": True, "ssim_linear": True, "psnr_srgb": True, "ssim_srgb": True, "flip_hdr": False}
+
+
+def scene_means(per_sample: list[dict], key: str) -> dict[str, float]:
+    """A metric averaged over each scene's samples (``sample`` reads ``"scene#slice"``)."""
+    groups: dict[str, list[float]] = {}
+    for p in per_sample:
+        groups.setdefault(p["sample"].rsplit("#", 1)[0], []).append(p[key])
+    return {scene: float(np.mean(v)) for scene, v in groups.items()}
+
+
+def paired_by_scene(ref: list[dict], other: list[dict], key: str, resamples: int = 2000, seed: int = 0) -> dict[str, Any]:
+    """``ref`` minus ``other`` on one metric, scene by scene (per-sample lists of the same samples).
+
+    Slices of one scene share their content, so the scene, not the sample, is the unit: the
+    interval is a percentile bootstrap of the mean difference over scenes (``resamples`` draws,
+    seeded). Returns ``{"scenes", "ahead" (scenes where ref is better), "median", "mean", "ci95"}``.
+    """
+    if key not in HIGHER_IS_BETTER:
+        raise ValueError(f"unknown metric {key!r}: expected one of {sorted(HIGHER_IS_BETTER)}")
+    a, b = scene_means(ref, key), scene_means(other, key)
+    if a.keys() != b.keys():
+        raise ValueError(f"the two methods were scored on different scenes: {sorted(a.keys() ^ b.keys())}")
+    d = np.array([a[s] - b[s] for s in sorted(a)])
+    sign = 1.0 if HIGHER_IS_BETTER[key] else -1.0
+    draws = np.random.default_rng(seed).integers(0, len(d), size=(resamples, len(d)))
+    means = d[draws].mean(axis=1)
+    return {"scenes": len(d), "ahead": int((sign * d > 0).sum()), "median": float(np.median(d)), "mean": float(d.mean()),
+            "ci95": [float(np.percentile(means, 2.5)), float(np.percentile(means, 97.5))]}

@@ -9,7 +9,8 @@ channel in its own channel, scaled to its brightest value (a PNG holds the trans
 not sRGB-encoded light). The reference panel on the left is
 the aperture the data declares (``--scene``: the ``scene.json`` of a scene, e.g. a light field's
 exact view-grid aperture) or ``--aperture SPEC`` (``polygon:7``, ``disk``, ...), rasterised on
-the same grid, without vignetting.
+the same grid, without vignetting; the log then gives the centre pupil's distance from it
+(:func:`pupil_distance`: where no cat-eye clips the pupil, its shape and size in one number).
 """
 
 from __future__ import annotations
@@ -73,6 +74,24 @@ def reference_panel(aperture: Aperture, size: int) -> np.ndarray:
     return np.repeat((t / max(float(t.max()), 1e-12))[..., None], 3, axis=2).astype(np.float32)
 
 
+def pupil_distance(learned: np.ndarray, reference: np.ndarray) -> float:
+    """How far one pupil is from another: the total-variation distance between the two
+    transmissions, each scaled to sum 1 per channel, averaged over the channels.
+
+    Args:
+        learned: ``(P, P, 3)`` transmission, >= 0.
+        reference: ``(P, P, 3)`` transmission, >= 0.
+
+    Returns:
+        0 for the same shape and size (any brightness), 1 where they share no sample.
+    """
+    if learned.shape != reference.shape or learned.ndim != 3:
+        raise ValueError(f"pupils must both be (P, P, C), got {learned.shape} and {reference.shape}")
+    a, b = np.asarray(learned, dtype=np.float64), np.asarray(reference, dtype=np.float64)
+    a, b = a / np.maximum(a.sum(axis=(0, 1)), 1e-12), b / np.maximum(b.sum(axis=(0, 1)), 1e-12)
+    return float(0.5 * np.abs(a - b).sum(axis=(0, 1)).mean())
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m neuralbokeh.evaluation.pupils", description=__doc__, formatter_class=HelpFormatter)
     p.add_argument("checkpoint", type=Path, help="a lens network's checkpoint")
@@ -106,6 +125,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if aperture is not None:
         panels.insert(0, reference_panel(aperture, model.config.pupil_size))
         labels.insert(0, "reference")
+        log.info("centre pupil against the reference: %.4f (total-variation distance, 0: the same, 1: disjoint)",
+                 pupil_distance(panels[1], panels[0]))
     sheet = pupil_sheet(panels, args.scale)
     if args.out.suffix.lower() in (".png", ".jpg", ".jpeg"):  # a transmission, not light: 0..1 to 0..255 as it is
         write_image(args.out, np.round(sheet * 255).astype(np.uint8), pixel_type="uint8")
