@@ -128,6 +128,11 @@ def main() -> None:
     p.add_argument("--load", type=Path, default=None, help="a --save folder: its AIF, depth and truths instead of Mitsuba")
     p.add_argument("--save", type=Path, default=None, help="folder to write the AIF and the truths to (EXR)")
     args = p.parse_args()
+    if args.save:  # before minutes of Mitsuba: a folder that cannot be made is said now
+        try:
+            args.save.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            p.error(f"--save {args.save}: cannot make the folder ({e.strerror})")
     w, h = args.size
     m = args.overscan
     # the same pixel pitch over a film M px wider on every side: the frame is its centre crop

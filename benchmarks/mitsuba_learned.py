@@ -15,7 +15,8 @@
 3. Trains the default network on the training split for ``--minutes`` (``configs/quickstart.toml``
    with the tiles scaled to the image: size/4 px cores, size/8 px overlap, and
    ``train.loss_pool = --loss-pool``: the renders' noise would otherwise pull the learned blur
-   small, ``docs/network.md``; ``KEY=VALUE`` overrides go to ``train.py`` after these, e.g.
+   small, ``docs/network.md``; at a constant rate, the weights averaged over the last ~100 steps,
+   ``train.ema_steps = 100``; ``KEY=VALUE`` overrides go to ``train.py`` after these, e.g.
    ``train.pupil_tv=1e-3``).
 4. Evaluates the checkpoint next to every classical baseline of ``neuralbokeh.evaluation.evaluate`` on the
    held-out split (``report/``: ``report.md`` with the per-scene comparison, error-vs-runtime
@@ -70,7 +71,7 @@ def main() -> None:
             "--aif-spp", str(max(args.test_spp // 4, 1)), "--only", *map(str, held_out + extra))
     run("train.py", "configs/quickstart.toml", "--overwrite", f"data.roots=['{args.data}']", "data.test_fraction=0.25",
         f"model.tile={args.size // 4}", f"model.overlap={args.size // 8}", f"train.loss_pool={args.loss_pool}", "train.steps=1000000",
-        "train.lr_schedule='constant'", "train.eval_every=1000000", "train.checkpoint_every=200",
+        "train.lr_schedule='constant'", "train.ema_steps=100", "train.eval_every=1000000", "train.checkpoint_every=200",
         f"train.out_dir='{args.out}'", *args.overrides, "--time-limit", str(args.minutes))
     run("-m", "neuralbokeh.evaluation", "--data", str(args.data), "--test-fraction", "0.25",
         "--models", str(args.out / "checkpoint.pt"), "--baselines", "all", "--repeats", "1", "--out", str(args.out / "report"))

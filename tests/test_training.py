@@ -134,6 +134,8 @@ def test_config_errors(tmp_path):
         load_config(good, ["train.loss_pool=0"])
     with pytest.raises(TypeError, match=r"train.loss_pool must be int, got 2.5"):
         load_config(good, ["train.loss_pool=2.5"])
+    with pytest.raises(ValueError, match=r"train.ema_steps must be an integer >= 0 \(steps; 0: off\), got -1"):
+        load_config(good, ["train.ema_steps=-1"])
     with pytest.raises(ValueError, match=r"train.loss_pool = 2 needs train.loss = 'image' .*got 'tile'"):
         load_config(good, ["train.loss_pool=2", "train.loss='tile'"])
 
@@ -162,17 +164,43 @@ def test_train_writes_checkpoint_log_and_metrics(tiny_dataset, tmp_path):
     assert json.loads((tmp_path / "run" / "summary.json").read_text())["steps"] == 4
 
 
-def test_resume_continues_bit_for_bit(tiny_dataset, tmp_path):
-    straight = train(_config(tmp_path / "a", tiny_dataset, steps=6), progress=False)
-    first = train(_config(tmp_path / "b", tiny_dataset, steps=6), progress=False, stop_at=3)
+@pytest.mark.parametrize("ema_steps", [0, 2])
+def test_resume_continues_bit_for_bit(tiny_dataset, tmp_path, ema_steps):
+    straight = train(_config(tmp_path / "a", tiny_dataset, steps=6, ema_steps=ema_steps), progress=False)
+    first = train(_config(tmp_path / "b", tiny_dataset, steps=6, ema_steps=ema_steps), progress=False, stop_at=3)
     assert first["steps"] == 3
-    resumed = train(_config(tmp_path / "b", tiny_dataset, steps=6), resume=first["checkpoint"], progress=False)
+    resumed = train(_config(tmp_path / "b", tiny_dataset, steps=6, ema_steps=ema_steps), resume=first["checkpoint"],
+                    progress=False)
     a = torch.load(straight["checkpoint"], weights_only=False)
     b = torch.load(resumed["checkpoint"], weights_only=False)
     assert a["step"] == b["step"] == 6
-    for key, value in a["model_state"].items():
-        assert torch.equal(value, b["model_state"][key]), key
+    states = ("model_state", "trained_state") if ema_steps else ("model_state",)
+    assert all(s in a for s in states) and ("trained_state" in a) == bool(ema_steps)
+    for state in states:
+        for key, value in a[state].items():
+            assert torch.equal(value, b[state][key]), (state, key)
+    if ema_steps:  # the model is the average, not the last step's weights; evaluated and loaded as such
+        assert not torch.equal(a["model_state"]["log_channel_scale"], a["trained_state"]["log_channel_scale"])
+        model, _ = load_model(straight["checkpoint"])
+        assert torch.equal(model.log_channel_scale.detach(), a["model_state"]["log_channel_scale"])
     assert a["metrics"] == b["metrics"]
+
+
+def test_moving_average_is_the_mean_then_exponential():
+    """train.ema_steps = 3: after n updates the average is the plain mean of the n weights while
+    n <= 3, then each update moves it a third of the way to the new weights."""
+    net = torch.nn.Linear(1, 1, bias=False)
+    ema = loop_module.averaged(net, 3)
+    assert not any(p.requires_grad for p in ema.parameters())
+    values = [1.0, 2.0, 6.0, 10.0, 4.0]
+    expect = [1.0, 1.5, 3.0, 3.0 + (10.0 - 3.0) / 3, None]
+    expect[4] = expect[3] + (4.0 - expect[3]) / 3
+    for v, e in zip(values, expect):
+        with torch.no_grad():
+            net.weight.fill_(v)
+        ema.update_parameters(net)
+        assert ema.module.weight.item() == pytest.approx(e, rel=1e-6)
+    assert loop_module.ema_weight(0, 3) == 1.0 and loop_module.ema_weight(10, 3) == pytest.approx(1 / 3)
 
 
 def test_resume_refuses_another_model(tiny_dataset, tmp_path):

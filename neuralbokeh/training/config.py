@@ -88,6 +88,12 @@ class TrainSection:
             (0: off). A lens's pupil changes over the field as far as the data shows; corrections
             learned per region from a few noisy renders fit their noise.
         lr_schedule: ``"cosine"`` (to 10% of lr) or ``"constant"``, after ``warmup_steps``.
+        ema_steps: steps, an integer >= 0: the weights that are evaluated, checkpointed as the
+            model and exported are an exponential moving average of the trained ones over about
+            this many recent steps (decay ``1 - 1 / ema_steps``, shorter in the first steps;
+            :func:`~neuralbokeh.training.loop.ema_weight`); 0: the trained weights themselves. At a
+            constant rate Adam moves every weight by about ``lr`` a step in noisy directions; the
+            average keeps the point the weights wander around.
         warmup_steps: linear warm-up steps.
         grad_clip: clip the gradient norm to this value (0 = off).
         loss: ``"image"`` (MSE of the reassembled image, the paper) or ``"tile"`` (ablation).
@@ -103,6 +109,7 @@ class TrainSection:
     batch_size: int = 4
     lr: float = 2e-3
     lr_schedule: str = "cosine"
+    ema_steps: int = 0
     lr_kernel_scaling: str = "fan_in"
     field_lr_scale: float = 0.25
     ssim_weight: float = 0.0
@@ -157,6 +164,8 @@ class TrainConfig:
             if w > 0 and self.model.architecture != "lens":
                 raise ValueError(f"train.{name} needs the lens architecture (it has pupils), "
                                  f"got model.architecture = {self.model.architecture!r}")
+        if isinstance(t.ema_steps, bool) or not isinstance(t.ema_steps, int) or t.ema_steps < 0:
+            raise ValueError(f"train.ema_steps must be an integer >= 0 (steps; 0: off), got {t.ema_steps!r}")
         if not (0.0 < t.field_lr_scale <= 1.0):
             raise ValueError(f"train.field_lr_scale must be in (0, 1], got {t.field_lr_scale}")
         if d.crop and (len(d.crop) != 2 or any(isinstance(v, bool) or not isinstance(v, int) or v < 1 for v in d.crop)):

@@ -37,6 +37,7 @@ import torch.distributed as dist
 import torch.nn.functional as F
 from kornia.metrics import psnr, ssim
 from torch.nn.parallel import DistributedDataParallel
+from torch.optim.swa_utils import AveragedModel
 from torch.utils.data.distributed import DistributedSampler
 from tqdm import tqdm
 
@@ -170,6 +171,28 @@ def _lr_factor(step: int, cfg: TrainConfig) -> float:
         return 1.0
     progress = (step - t.warmup_steps) / max(1, t.steps - t.warmup_steps)
     return 0.1 + 0.9 * 0.5 * (1.0 + math.cos(math.pi * min(1.0, progress)))
+
+
+def ema_weight(count: int | torch.Tensor, ema_steps: int) -> float | torch.Tensor:
+    """The share of the newest weights in the moving average after ``count`` earlier updates:
+    ``1 / (count + 1)`` (the plain mean of all steps so far) until that falls to ``1 / ema_steps``,
+    then ``1 / ema_steps`` (an exponential average over about ``ema_steps`` steps). The plain
+    mean first keeps the initial weights from lingering in the average of a short run."""
+    if torch.is_tensor(count):
+        return torch.clamp(1.0 / (count + 1.0), min=1.0 / ema_steps)
+    return max(1.0 / (count + 1.0), 1.0 / ema_steps)
+
+
+def averaged(model: torch.nn.Module, ema_steps: int) -> AveragedModel:
+    """The moving average of ``model``'s weights (``train.ema_steps``; :func:`ema_weight`),
+    updated by ``update_parameters(model)`` after each step; the averaged network is ``.module``."""
+    def average(avg: torch.Tensor, new: torch.Tensor, count: torch.Tensor) -> torch.Tensor:
+        return avg + (new - avg) * ema_weight(count, ema_steps).to(avg.dtype)
+
+    ema = AveragedModel(model, avg_fn=average, use_buffers=True)
+    for p in ema.parameters():
+        p.requires_grad_(False)
+    return ema
 
 
 class Samples:
@@ -381,6 +404,7 @@ class _Run:
         self.model = build_model(self.mcfg, self.contract).to(proc.device)
         t = cfg.train
         self.optimizer = torch.optim.Adam(param_groups(self.model, t.lr_kernel_scaling, t.field_lr_scale), lr=t.lr)
+        self.ema = averaged(self.model, t.ema_steps) if t.ema_steps else None
         self.step, self.skipped, self.t0 = 0, 0, time.perf_counter()
         self.per_rank = t.batch_size // proc.world
         self.sampler = DistributedSampler(self.train_ds, num_replicas=proc.world, rank=proc.rank, shuffle=True, seed=t.seed,
@@ -402,7 +426,11 @@ class _Run:
             if ModelConfig.from_dict(ck["model_config"]).to_dict() != run.mcfg.to_dict():
                 raise ValueError(f"checkpoint {resume} is for model {ck['model_config']}, this config builds "
                                  f"{run.mcfg.to_dict()}")
-            run.model.load_state_dict(ck["model_state"])
+            # with train.ema_steps the checkpoint's model is the average, the trained weights beside it
+            run.model.load_state_dict(ck.get("trained_state", ck["model_state"]))
+            if run.ema is not None:
+                run.ema.module.load_state_dict(ck["model_state"])
+                run.ema.n_averaged.fill_(ck["step"])
             run.optimizer.load_state_dict(ck["optimizer_state"])
             run.step, run.skipped = ck["step"], ck["skipped_steps"]
             torch.set_rng_state(ck["rng_state"])
@@ -413,9 +441,17 @@ class _Run:
                      sum(p.numel() for p in run.model.parameters()))
         return run
 
+    @property
+    def result(self) -> torch.nn.Module:
+        """The network this run evaluates, checkpoints as its model and a user exports: the moving
+        average of the weights with ``train.ema_steps``, else the trained network."""
+        return self.model if self.ema is None else self.ema.module
+
     def checkpoint(self, metrics: dict) -> Path:
+        trained = {} if self.ema is None else {"trained_state": self.model.state_dict()}
         return save_checkpoint(self.out_dir / "checkpoint.pt", {
-            "model_config": self.mcfg.to_dict(), "contract": self.contract.to_dict(), "model_state": self.model.state_dict(),
+            "model_config": self.mcfg.to_dict(), "contract": self.contract.to_dict(), "model_state": self.result.state_dict(),
+            **trained,
             "optimizer_state": self.optimizer.state_dict(),
             "step": self.step, "skipped_steps": self.skipped, "rng_state": torch.get_rng_state(),
             "train_config": self.cfg.to_dict(), "metrics": metrics,
@@ -445,6 +481,8 @@ class _Run:
                 loss, finite = _step(self.net, self.model, self.optimizer, x, y, window, weights, self.cfg, self.step, proc,
                                      self.train_ds.normalization)
                 self.skipped += not finite
+                if self.ema is not None:  # every step, skipped ones too: its count stays the step's
+                    self.ema.update_parameters(self.model)
                 consecutive = 0 if finite else consecutive + 1
                 if not finite:
                     log.warning("step %d: non-finite loss or gradient, step skipped (scenes %s)", self.step + 1, names)
@@ -457,7 +495,7 @@ class _Run:
                     last = self.step
                 if self.step % t.eval_every == 0 or self.step == last:
                     if self.lead and self.test_samples:
-                        metrics = held_out_metrics(self.model, self.test_samples, proc.device, baselines)
+                        metrics = held_out_metrics(self.result, self.test_samples, proc.device, baselines)
                         baselines = {k: v for k, v in metrics.items() if not k.startswith("eval_")}
                         row.update(metrics)
                         bar.set_postfix(psnr=f"{metrics['eval_psnr']:.2f}", gauss=f"{metrics['gaussian_psnr']:.2f}")
