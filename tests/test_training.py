@@ -200,7 +200,8 @@ def test_moving_average_is_the_mean_then_exponential():
             net.weight.fill_(v)
         ema.update_parameters(net)
         assert ema.module.weight.item() == pytest.approx(e, rel=1e-6)
-    assert loop_module.ema_weight(0, 3) == 1.0 and loop_module.ema_weight(10, 3) == pytest.approx(1 / 3)
+    assert loop_module.ema_weight(torch.tensor(0), 3).item() == 1.0
+    assert loop_module.ema_weight(torch.tensor(10), 3).item() == pytest.approx(1 / 3)
 
 
 def test_resume_refuses_another_model(tiny_dataset, tmp_path):

@@ -173,14 +173,12 @@ def _lr_factor(step: int, cfg: TrainConfig) -> float:
     return 0.1 + 0.9 * 0.5 * (1.0 + math.cos(math.pi * min(1.0, progress)))
 
 
-def ema_weight(count: int | torch.Tensor, ema_steps: int) -> float | torch.Tensor:
-    """The share of the newest weights in the moving average after ``count`` earlier updates:
-    ``1 / (count + 1)`` (the plain mean of all steps so far) until that falls to ``1 / ema_steps``,
-    then ``1 / ema_steps`` (an exponential average over about ``ema_steps`` steps). The plain
-    mean first keeps the initial weights from lingering in the average of a short run."""
-    if torch.is_tensor(count):
-        return torch.clamp(1.0 / (count + 1.0), min=1.0 / ema_steps)
-    return max(1.0 / (count + 1.0), 1.0 / ema_steps)
+def ema_weight(count: torch.Tensor, ema_steps: int) -> torch.Tensor:
+    """The share of the newest weights in the moving average after ``count`` (a tensor) earlier
+    updates: ``1 / (count + 1)`` (the plain mean of all steps so far) until that falls to
+    ``1 / ema_steps``, then ``1 / ema_steps`` (an exponential average over about ``ema_steps``
+    steps). The plain mean first keeps the initial weights from lingering in the average of a short run."""
+    return (1.0 / (count + 1.0)).clamp(min=1.0 / ema_steps)
 
 
 def averaged(model: torch.nn.Module, ema_steps: int) -> AveragedModel:
