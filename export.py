@@ -36,7 +36,7 @@ def main(argv: list[str] | None = None) -> int:
                         "auto:EPS (per convolution the smallest separable rank whose effect on the model's output is within "
                         f"EPS / sqrt(#convolutions); default {DEFAULT_KERNELS})")
     p.add_argument("--tolerance", type=float, help="max abs parity error, normalised units (default 1e-4; 3e-4 where the lens "
-                                                   "graph samples a field flow; 2e-2 with --fp16)")
+                                                   "graph samples a field flow or the field gradient; 2e-2 with --fp16)")
     p.add_argument("--threads", type=int, default=None, help="onnxruntime threads for the parity check")
     p.add_argument("--size", type=int, nargs=2, metavar=("W", "H"),
                    help="lens network: the plate format the file renders, in px (default: the trained size)")

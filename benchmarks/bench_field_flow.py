@@ -1,16 +1,18 @@
-"""What ``model.field_flow`` gains and costs at 1080p, through the runtime.
+"""What ``model.field_flow`` and ``model.field_gradient`` gain and cost at 1080p, through the runtime.
 
-    python benchmarks/bench_field_flow.py [--cat-eye 0.6] [--repeats 5] [--threads 2]   # ~10 min on 2 cores
+    python benchmarks/bench_field_flow.py [--cat-eye 0.6] [--repeats 5] [--threads 2]   # ~15 min on 2 cores
 
 The model: ``bench_runtime.py``'s 1080p lens network (7-blade prior, N = 22 bands, 240 px tiles,
 24 px overlap), untrained but for a cat-eye of ``--cat-eye`` set on its learned vignette (the
 truth's, in the network's field units), so that its pupils vary over the field, exported
-(the default ``multires:10`` export) with ``model.field_flow`` on and off. The frame:
+(the default ``multires:10`` export) three times: the pupils' change across a tile left out
+(``neither``), ``field_flow`` (each pixel's blur moved by its own pupil's centroid) and
+``field_gradient`` (each pixel's kernels to first order in its offset from the tile's centre). The frame:
 ``bench_runtime.py``'s procedural frame (largest |CoC| 40 px); its truth the layered render through
 the same cat-eye aperture (``scatter_layers``: each source pixel's own kernel).
 
-Printed per export: ms per frame (median of ``--repeats`` renders after a warm-up, the two
-exports alternating in one process), the ratio on / off, and the metrics of
+Printed per export: ms per frame (median of ``--repeats`` renders after a warm-up, the
+exports alternating in one process), the ratio to ``neither``, and the metrics of
 ``neuralbokeh.evaluation.metrics`` against the truth.
 """
 
@@ -28,6 +30,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.bench_runtime import H, W, make_frame, make_model  # noqa: E402
+
+VARIANTS = {"neither": {"field_flow": False}, "field_flow": {"field_flow": True},
+            "field_gradient": {"field_flow": False, "field_gradient": True}}
 
 
 def main() -> None:
@@ -48,31 +53,31 @@ def main() -> None:
     aif, coc, _, truth = make_frame(args.seed, cat_eye=args.cat_eye)
     half_diag = 0.5 * np.hypot(W - 1, H - 1)
     models = {}
-    for flow in (False, True):
-        tag = f"flow_{'on' if flow else 'off'}_"
-        prior = make_model(args.out_dir, False, names=(), tag=tag, options={"field_flow": flow})["checkpoint"]
+    for name, options in VARIANTS.items():
+        tag = f"{name}_"
+        prior = make_model(args.out_dir, False, names=(), tag=tag, options=options)["checkpoint"]
         data = load_checkpoint(prior)
         state = dict(data["model_state"])  # the truth's cat-eye, in the network's field units (half-width, half-height)
         state["vignette"] = torch.tensor([args.cat_eye * (W - 1) / 2 / half_diag, args.cat_eye * (H - 1) / 2 / half_diag, 0.0])
         data["model_state"] = state
         save_checkpoint(prior, {k: v for k, v in data.items() if k not in ("format", "format_version", "package_version")})
         path = make_model(args.out_dir, False, names=("default",), checkpoint=prior, tag=tag)["default"]
-        models[flow] = OnnxBokeh(path, threads=args.threads)
-    times: dict[bool, list[float]] = {False: [], True: []}
-    outputs = {flow: m.render_coc(aif, coc) for flow, m in models.items()}  # the warm-up
+        models[name] = OnnxBokeh(path, threads=args.threads)
+    times: dict[str, list[float]] = {name: [] for name in models}
+    outputs = {name: m.render_coc(aif, coc) for name, m in models.items()}  # the warm-up
     for _ in range(args.repeats):
-        for flow, m in models.items():
+        for name, m in models.items():
             t = time.perf_counter()
             m.render_coc(aif, coc)
-            times[flow].append(time.perf_counter() - t)
-    ms = {flow: 1000 * statistics.median(t) for flow, t in times.items()}
+            times[name].append(time.perf_counter() - t)
+    ms = {name: 1000 * statistics.median(t) for name, t in times.items()}
     print(f"1920x1080, cat-eye {args.cat_eye}, largest |CoC| {np.abs(coc).max():.1f} px, {args.threads} threads, "
           f"median of {args.repeats}")
-    print("| field_flow | ms/frame | ratio | PSNR lin dB | SSIM lin | PSNR sRGB dB | SSIM sRGB | FLIP |")
+    print("| variant | ms/frame | ratio | PSNR lin dB | SSIM lin | PSNR sRGB dB | SSIM sRGB | FLIP |")
     print("|---|---|---|---|---|---|---|---|")
-    for flow in (False, True):
-        m = image_metrics(np.maximum(outputs[flow].astype(np.float64), 0.0), truth.astype(np.float64))
-        print(f"| {'on' if flow else 'off'} | {ms[flow]:.0f} | {ms[flow] / ms[False]:.3f} | {m['psnr_linear']:.2f} | "
+    for name in models:
+        m = image_metrics(np.maximum(outputs[name].astype(np.float64), 0.0), truth.astype(np.float64))
+        print(f"| {name} | {ms[name]:.0f} | {ms[name] / ms['neither']:.3f} | {m['psnr_linear']:.2f} | "
               f"{m['ssim_linear']:.4f} | {m['psnr_srgb']:.2f} | {m['ssim_srgb']:.4f} | {m['flip_hdr']:.4f} |")
 
 

@@ -402,6 +402,29 @@ def test_the_hermite_blend_exports_direct_and_on_coarser_grids(busy_checkpoint, 
     assert np.abs(direct - hat).max() > 1e-3
 
 
+def test_the_field_gradient_exports_direct_and_on_coarser_grids(busy_checkpoint, busy_onnx, tmp_path):
+    """``model.field_gradient``: each band's (kernel, x-gradient, y-gradient) features go through
+    one grouped convolution, directly and on the coarser grids of the default export; both match
+    their PyTorch reference, the gradient changes the output, and the file cannot add the flow."""
+    data = load_checkpoint(busy_checkpoint)
+    data["model_config"] = {**data["model_config"], "field_flow": False, "field_gradient": True}
+    ckpt = tmp_path / "gradient.pt"
+    save_checkpoint(ckpt, {k: v for k, v in data.items() if k not in ("format", "format_version", "package_version")})
+    model, _ = load_model(ckpt)
+    x = calibration_inputs(*model.contract.size, count=2, seed=7)
+    for kernels in ("direct", None):
+        report = export_checkpoint(ckpt, tmp_path / f"g_{kernels}.onnx", kernels=kernels, threads=1)
+        assert max(report["parity"].values()) <= 1e-4, (kernels, report["parity"])
+    direct = _run_onnx(tmp_path / "g_direct.onnx", x[:, :3].numpy(), x[:, 3:].numpy())
+    flow = _run_onnx(busy_onnx, x[:, :3].numpy(), x[:, 3:].numpy())  # the same weights with the field flow
+    with torch.no_grad():
+        assert np.abs(direct - model(x).numpy()).max() < 1e-4
+    assert np.abs(direct - flow).max() > 1e-3
+    with pytest.raises(ValueError, match="export it without the flow"):
+        export_checkpoint(ckpt, tmp_path / "both.onnx", kernels="direct", threads=1, field_flow=True)
+    assert not (tmp_path / "both.onnx").exists()
+
+
 def test_a_checkpoint_from_before_the_near_focus_lattice_keeps_its_uniform_bands(busy_checkpoint, busy_onnx, tmp_path):
     """A checkpoint whose model config has no ``near_focus_px`` (written before it existed) is
     rebuilt on the lattice uniform in |c| that it was trained on, not today's default; it

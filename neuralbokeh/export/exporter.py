@@ -35,7 +35,9 @@ log = logging.getLogger(__name__)
 DEFAULT_TOLERANCE = {False: 1e-4, True: 2e-2}
 # fp32, where the lens graph samples a field flow (GridSample): its sample positions round to float32
 # (~2e-5 px in a 288 px window), ~3e-5 of a window's range per sample in onnxruntime and in
-# torch alike, which the random-colour probe at 1080p meets as up to ~1.3e-4 (docs/runtime.md)
+# torch alike, which the random-colour probe at 1080p meets as up to ~1.3e-4 (docs/runtime.md); also
+# where it scatters the field gradient: PyTorch's own float32 forward of a trained 128 px model was
+# 9.4e-5 from its float64 one on that probe (onnxruntime 8.6e-6 from the float32 forward)
 FLOW_TOLERANCE = 3e-4
 
 
@@ -202,6 +204,9 @@ def plate_model(model: LensBokeh, size: tuple[int, int] | None = None, max_coc_p
                                    coc_scale_px=max(plan.c_plan_px, 1.0), max_coc_px=plan.c_plan_px)
     tile = max(model.config.tile, 2 * overlap) if tile_px is None else int(tile_px)
     flow = model.config.field_flow if field_flow is None else bool(field_flow)
+    if flow and model.config.field_gradient:
+        raise ValueError("field_flow = true: this model has model.field_gradient, which already gives each pixel its own "
+                         "pupil's blur; export it without the flow")
     plate = LensBokeh(dataclasses.replace(model.config, blocks=plan.blocks, tile=tile, overlap=overlap, field_flow=flow), contract)
     plate.load_state_dict(model.state_dict())
     return plate.eval()
@@ -237,7 +242,7 @@ def export_checkpoint(
             whose CoC is wide enough convolved on grids 2, 4 or 8 times coarser, keeping the CoC
             at least PX coarse pixels wide; default ``LENS_DEFAULT_KERNELS``).
         tolerance: max abs parity error in normalised units (default 1e-4 fp32, 3e-4 for a lens
-            graph that samples a field flow, 2e-2 fp16).
+            graph that samples a field flow or scatters the field gradient, 2e-2 fp16).
         threads: onnxruntime threads for the parity run.
         size: lens network: the plate format ``(H, W)`` px the file renders (default: the
             trained size); the learned lens renders any size.
@@ -302,7 +307,8 @@ def export_checkpoint(
     parity, approx = _parity(sess, probes, build, active, bar)
     bar.close()
     worst = max(parity.values())
-    tolerance = given if given is not None else FLOW_TOLERANCE if getattr(build, "warps", False) and not fp16 else DEFAULT_TOLERANCE[fp16]
+    loose = getattr(build, "warps", False) or getattr(build, "gradient", False)
+    tolerance = given if given is not None else FLOW_TOLERANCE if loose and not fp16 else DEFAULT_TOLERANCE[fp16]
     log.info("parity (max abs, normalised): %s; approximation: %s", parity, approx)
     if worst > tolerance:
         raise ValueError(f"ONNX and PyTorch differ by up to {worst:.3g} (> tolerance {tolerance:g}) per case {parity}; not written")
@@ -342,6 +348,7 @@ class _LensExport:
         self.approximate = any(s > 1 for s in self.scales.values())
         self.exact: LensBokeh | None = None  # the float64 copy of the reference
         self.warps = False  # whether the graph samples a field flow (set by graph())
+        self.gradient = False  # whether it scatters the field gradient (set by graph())
 
     def graph(self, fp16: bool, opset: int, props: dict[str, str]) -> onnx.ModelProto:
         m, d = self.model, self.plan.diameters
@@ -363,12 +370,18 @@ class _LensExport:
                 radius = {n: slopes[n].mean(axis=1) for n in slopes}  # (2,) per side, as the module's warp
                 reach = m.centroid_offsets(layout, pupils, *m.contract.size, self.window).abs().flatten(2).amax(dim=2)
                 centroids = ((nodes.numpy(), c_rows[0].numpy(), c_cols[0].numpy()), centre, radius, reach.double().numpy())
+            gradients = None
+            if m.config.field_gradient and bool(drift.abs().max() > 0):  # LensBokeh.kernel_gradients and its offsets
+                neighbours, per_px = m.neighbour_pupils(layout, *m.contract.size, self.window)
+                gradients = {n: reduce_kernel(m.kernel_gradients(n, neighbours, float(d[n]), per_px).double(), self.scales[n]).numpy()
+                             for n in range(1, m.config.blocks + 1)}
         flow = None if not bool(drift.abs().max() > 0) else ((drift.numpy(), rows.numpy(), cols.numpy()), slopes)
-        self.warps = centroids is not None
+        self.warps, self.gradient = centroids is not None, gradients is not None
         gain = None if m.fill_gain is None else float(m.far_light_gain().detach())
         share = None if m.surface_fill is None else float(m.surface_fill_share().detach())
         return build_lens_graph(band_kernels, self.plan, m.config, m.contract, fp16, opset, props, self.scales,
-                                self.spec.rows, flow, gain, kernel_slopes, share, margins=margins, centroids=centroids)
+                                self.spec.rows, flow, gain, kernel_slopes, share, margins=margins, centroids=centroids,
+                                gradients=gradients)
 
     def reference(self, x: torch.Tensor, active: torch.Tensor) -> torch.Tensor:
         """The PyTorch function of the exported kernels (coarse grids included) on the

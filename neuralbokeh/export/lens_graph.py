@@ -55,7 +55,7 @@ from ..core.contract import Contract
 from ..core.normalization import Normalization
 from ..core.tiling import pyramid_levels
 from ..networks.config import SILHOUETTE_PX, SURFACE_FILL_EPS, ModelConfig
-from ..networks.lens import FLOW_MIN_PX
+from ..networks.lens import FLOW_MIN_PX, window_offsets_px
 from ..ops.holes import JUMP_PX, LOG_OFFSET, OUTLIER_RATIO, STEP_PX
 from .graph import GraphBuilder, finish_model
 
@@ -327,7 +327,8 @@ def _pixel_centres(win: int) -> np.ndarray:
 
 def _band(b: GraphBuilder, k: int, n: int, side: int, pos: str, side_mask: str, src_mask: str, rgb: str, c: str,
           kernel: np.ndarray, flow: tuple[str, np.ndarray] | None, scale: int, win: int, band_coc: float, margin: float,
-          fp16: bool, rows: bool, slope: np.ndarray | None = None, warp: tuple[str, float] | None = None) -> onnx.GraphProto:
+          fp16: bool, rows: bool, slope: np.ndarray | None = None, warp: tuple[str, float] | None = None,
+          gradient: tuple[np.ndarray, tuple[str, str]] | None = None) -> onnx.GraphProto:
     """Then-branch: band ``n``'s contribution ``(1, B, 3, 6, win, win)``, (near, same, far) x (RGB, coverage),
     its convolution on a grid ``scale`` times coarser when ``scale > 1`` (``kernel`` is then
     the binned one, :func:`~neuralbokeh.networks.lens.reduce_kernel`), by rows
@@ -339,7 +340,11 @@ def _band(b: GraphBuilder, k: int, n: int, side: int, pos: str, side_mask: str, 
     ``warp``: (this side's centroid offsets ``(1, 2, win, win)``, the CoC radius (px, signed as
     ``gain_slopes``)): the features are sampled at ``p - radius x offset`` first
     (:func:`~neuralbokeh.networks.lens.flow_warp`, ``model.field_flow``), on the coarse grid
-    when ``scale > 1``."""
+    when ``scale > 1``. ``gradient``: (the kernels' derivative in the source position ``(2, 3,
+    k, k)`` (x, y; ``LensBokeh.kernel_gradients``, binned as ``kernel``), the window's pixel
+    offsets from the tile's centre, x ``(1, 1, 1, win)`` and y ``(1, 1, win, 1)`` px): two more
+    features per channel, the gate times each offset, each scattered by its derivative
+    (``model.field_gradient``)."""
     g = Nodes(GraphBuilder(b.count), f"t{k}.n{n}s{side}")
     one = g.c("one", 1.0)
     if slope is None:
@@ -348,15 +353,15 @@ def _band(b: GraphBuilder, k: int, n: int, side: int, pos: str, side_mask: str, 
         weights = list(_hermite_weights(g, pos, n))
     if flow is not None:
         rgb = g.op("Sub", rgb, g.op("Mul", flow[0], g.c("slope", np.asarray(flow[1]).reshape(1, 3, 1, 1))))
-    parts = []
-    for i, weight in enumerate(weights):
-        gate = g.op("Mul", g.op("Mul", weight, src_mask), side_mask)
-        parts.append(g.op("Concat", g.op("Mul", rgb, gate), gate, gate, gate, axis=1))  # (B, 6, win, win)
+    gates = [g.op("Mul", g.op("Mul", weight, src_mask), side_mask) for weight in weights]
+    if gradient is not None:  # the value gate times the pixel's offset from the tile's centre, x and y
+        gates += [g.op("Mul", gates[0], offset) for offset in gradient[1]]
+    parts = [g.op("Concat", g.op("Mul", rgb, gate), gate, gate, gate, axis=1) for gate in gates]  # (B, 6, win, win) each
     if len(parts) == 1:
         feats = parts[0]
-    else:  # interleaved (kernel, slope) per channel: (B, 6, 2, win, win) -> (B, 12, win, win)
+    else:  # interleaved per channel, e.g. (kernel, slope): (B, 6, P, win, win) -> (B, 6 P, win, win)
         pair = g.op("Concat", *(g.op("Unsqueeze", f, g.c("ax2", [2], np.int64)) for f in parts), axis=2)
-        feats = g.op("Reshape", pair, g.c("pair_shape", [0, 12, win, win], np.int64))
+        feats = g.op("Reshape", pair, g.c("pair_shape", [0, 6 * len(parts), win, win], np.int64))
     offsets = None if warp is None else warp[0]
     if scale > 1:
         extra = -(-win // scale) * scale - win
@@ -371,8 +376,8 @@ def _band(b: GraphBuilder, k: int, n: int, side: int, pos: str, side_mask: str, 
         grid = g.op("Add", g.c("centres", _pixel_centres(n_px)), moved)
         batch = g.op("Concat", g.op("Shape", feats, end=1), g.c("grid_tail", [n_px, n_px, 2], np.int64), axis=0)
         feats = g.op("GridSample", feats, g.op("Expand", grid, batch), mode="bilinear", padding_mode="border", align_corners=0)
-    psfs = [kernel] if slope is None else [kernel, slope]
-    w = np.stack([np.concatenate([f, f]) for f in psfs], axis=1)[:, :, ::-1, ::-1]  # (6, 1 or 2, k, k), correlation weights
+    psfs = [kernel] + ([] if slope is None else [slope]) + ([] if gradient is None else list(gradient[0]))
+    w = np.stack([np.concatenate([f, f]) for f in psfs], axis=1)[:, :, ::-1, ::-1]  # (6, P, k, k), correlation weights
     p = kernel.shape[-1] // 2
     if rows:
         out = conv_rows(g, feats, w, -(-win // scale), fp16)
@@ -402,7 +407,8 @@ def _tile(b: GraphBuilder, k: int, cut: tuple[str, str, str | None], kernels: Ma
           flow: tuple[str, Mapping[int, np.ndarray]] | None,
           scales: Mapping[int, int], src: np.ndarray, cfg: ModelConfig, contract: Contract, plan: BandPlan, fp16: bool,
           rows: bool, margins: Mapping[int, float], slopes: Mapping[int, np.ndarray] | None = None,
-          centroids: tuple[str, np.ndarray, Mapping[int, np.ndarray], np.ndarray] | None = None) -> onnx.GraphProto:
+          centroids: tuple[str, np.ndarray, Mapping[int, np.ndarray], np.ndarray] | None = None,
+          gradients: tuple[Mapping[int, np.ndarray], np.ndarray] | None = None) -> onnx.GraphProto:
     """Then-branch: tile ``k``'s accumulators ``(B, 3, 6, win, win)``, flattened to ``(1, B 18 win^2)``,
     from its window of the inputs ``aif`` and ``coc`` (``cut``, :func:`_cut`: a tile that does not
     run cuts nothing); band ``n``, side ``s`` runs where ``band_active[k, n - 1, s]``. A
@@ -413,7 +419,10 @@ def _tile(b: GraphBuilder, k: int, cut: tuple[str, str, str | None], kernels: Ma
     band's occlusion margin. ``centroids``: (the pupils' centroid map ``(1, 4, H, W)``, this
     tile's pupils' centroid ``(2, 2)`` (side, x / y), ``{n: (2,)}`` each band's CoC radius per
     side, ``(2,)`` the largest offset over the window per side) for ``model.field_flow``, or
-    None; a band and side is warped where radius x offset reaches ``FLOW_MIN_PX``, as the module."""
+    None; a band and side is warped where radius x offset reaches ``FLOW_MIN_PX``, as the module.
+    ``gradients``: (``{n: (2, 2, 3, k, k)}`` (axis, side) the kernels' derivatives in the source
+    position, ``(2,)`` the window's top-left corner less the tile's centre (x, y px;
+    ``window_offsets_px``)) for ``model.field_gradient``, or None."""
     g = Nodes(GraphBuilder(b.count), f"t{k}")
     blocks, diameters = plan.blocks, plan.diameters
     win = src.shape[-1]
@@ -443,6 +452,11 @@ def _tile(b: GraphBuilder, k: int, cut: tuple[str, str, str | None], kernels: Ma
         moved = None if flow is None else [
             g.op("Mul", rgb, g.op("Slice", drift, g.c(f"d{s}0", [3 * s], np.int64), g.c(f"d{s}1", [3 * s + 3], np.int64),
                                   g.c("ax1", [1], np.int64))) for s in range(2)]  # colour x drift, per side
+        pixel_offsets = None  # LensBokeh.tile_offsets_px: each window pixel's centre less the tile's, x and y
+        if gradients is not None:
+            ramp = np.arange(win, dtype=np.float64) + 0.5
+            pixel_offsets = (g.c("offset_x", (ramp + gradients[1][0]).reshape(1, 1, 1, win)),
+                             g.c("offset_y", (ramp + gradients[1][1]).reshape(1, 1, win, 1)))
         offsets = None
         if centroids is not None:  # LensBokeh.centroid_offsets: each pixel's centroid minus the tile's, per side
             off = g.op("Sub", _cut(g, centroids[0], cut), g.c("centroid", np.reshape(centroids[1], (1, 4, 1, 1))))
@@ -456,7 +470,8 @@ def _tile(b: GraphBuilder, k: int, cut: tuple[str, str, str | None], kernels: Ma
                              sign * float(diameters[n]), margins[n], fp16, rows,
                              None if slopes is None else slopes[n][side],
                              None if offsets is None or abs(centroids[2][n][side]) * centroids[3][side] < FLOW_MIN_PX
-                             else (offsets[side], float(centroids[2][n][side])))
+                             else (offsets[side], float(centroids[2][n][side])),
+                             None if gradients is None else (gradients[0][n][:, side], pixel_offsets))
                 skip = Nodes(GraphBuilder(g.b.count), f"t{k}.n{n}s{side}.skip")
                 empty = skip.op("Slice", base, skip.c("s0", [0], np.int64), skip.c("s0", [0], np.int64), skip.c("ax0", [0], np.int64))
                 else_graph = _branch(skip, empty, f"t{k}_band{n}_{side}_skip")
@@ -678,7 +693,8 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: Mod
                      fill_gain: float | None = None, slopes: Mapping[int, np.ndarray] | None = None,
                      surface_share: float | None = None, *, margins: Mapping[int, float],
                      centroids: tuple[tuple[np.ndarray, np.ndarray, np.ndarray], np.ndarray, Mapping[int, np.ndarray],
-                                      np.ndarray] | None = None) -> onnx.ModelProto:
+                                      np.ndarray] | None = None,
+                     gradients: Mapping[int, np.ndarray] | None = None) -> onnx.ModelProto:
     """The full-image ONNX model of a ``LensBokeh``.
 
     Args:
@@ -708,6 +724,9 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: Mod
             cols (W, Gx)) of LensBokeh.centroid_lattice, (tiles, 2, 2) each tile's pupils'
             centroid, {n: (2,)} band n's CoC radius per side, signed as gain_slopes, (tiles, 2)
             the largest offset (aperture radii) over each tile's window per side)``.
+        gradients: ``model.field_gradient`` only (else None): ``{n: (tiles, 2, 2, 3, k, k)}``
+            LensBokeh.kernel_gradients, binned as kernels; each source pixel's offset from its
+            tile's centre (``LensBokeh.tile_offsets_px``) is made in the graph.
     """
     if opset < 18:
         raise ValueError(f"the lens graph needs opset >= 18 (Col2Im), got {opset}")
@@ -733,6 +752,7 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: Mod
         at_rows = top.op("MatMul", b.const("centroid_rows", rows_w), b.const("centroid_nodes", np.reshape(nodes, (4, *nodes.shape[-2:]))))
         full = top.op("MatMul", at_rows, b.const("centroid_cols_t", np.transpose(cols_w)))  # (4, H, W)
         centroid_map = top.op("Unsqueeze", full, b.const("ax0", [0], np.int64))
+    corners = window_offsets_px(layout, h, w)
     placed = []
     for k, r, c in layout.origins():
         y0, x0 = r - pad_t, c - pad_l  # the window in frame px; the edge pads it where it leaves the frame
@@ -746,8 +766,9 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: Mod
         tile_flow = None if drift is None else (drift, flow[1])
         tile_slopes = None if slopes is None else {n: slopes[n][k] for n in slopes}
         tile_centroids = None if centroid_map is None else (centroid_map, centroids[1][k], centroids[2], centroids[3][k])
+        tile_gradients = None if gradients is None else ({n: gradients[n][k] for n in gradients}, corners[k])
         then = _tile(b, k, cut, tile_kernels, tile_flow, scales, source_masks[k], cfg, contract, plan, fp16, rows, margins, tile_slopes,
-                     tile_centroids)
+                     tile_centroids, tile_gradients)
         b.count += 10_000  # branch-local names stay unique across branches
         other = _idle(b, k, win)
         b.count += 10_000

@@ -116,9 +116,17 @@ class ModelConfig:
             d_n / 2 x (mu(p) - mu(tile))`` (the channels' mean centroid, in aperture radii) before
             the scatter, which with the drift's colour gain (its Jacobian) moves the light as
             the per-pixel pupil would, to first order. Skipped where the pupils do not vary.
+        field_gradient: give each source pixel the first-order change of its tile's kernels
+            across the tile (lens): band ``n`` also scatters (colour x gate, gate) x the pixel's
+            offset from the tile's centre (px, x and y) by the kernels' derivative in the sensor
+            position. Across a tile the cat-eye's circle moves over the pupil, which changes a
+            kernel's shape, not only where it lands; the derivative holds both, so it replaces
+            ``field_flow`` (set that false), whose bilinear warp also smears what it moves. Three
+            scatters per band instead of one (one grouped convolution of three feature groups
+            in the export); skipped where the pupils do not vary.
         (``features``, ``head`` and the FFT thresholds: paper only; ``pupil_*``,
         ``field_grid``, ``vignetting``, ``occlusion_margin*``, ``fill``, ``surface_fill``,
-        ``band_blend``, ``near_focus_px``, ``pixel_blur*``, ``field_flow``: lens only; the rest: both.)
+        ``band_blend``, ``near_focus_px``, ``pixel_blur*``, ``field_flow``, ``field_gradient``: lens only; the rest: both.)
     """
 
     architecture: str = "lens"
@@ -145,6 +153,7 @@ class ModelConfig:
     pixel_blur: bool = False
     pixel_blur_px2: float = 0.0
     field_flow: bool = True
+    field_gradient: bool = False
 
     def __post_init__(self) -> None:
         for name in ("features", "tile", "fft_min_kernel", "fft_min_kernel_train"):
@@ -170,6 +179,11 @@ class ModelConfig:
             raise ValueError(f"model.surface_fill must be true or false, got {self.surface_fill!r}")
         if not isinstance(self.field_flow, bool):
             raise ValueError(f"model.field_flow must be true or false, got {self.field_flow!r}")
+        if not isinstance(self.field_gradient, bool):
+            raise ValueError(f"model.field_gradient must be true or false, got {self.field_gradient!r}")
+        if self.field_gradient and self.field_flow:
+            raise ValueError("model.field_gradient moves each pixel's blur with its kernel's change, which model.field_flow would "
+                             "move again: set model.field_flow = false")
         if not isinstance(self.pixel_blur, bool):
             raise ValueError(f"model.pixel_blur must be true or false, got {self.pixel_blur!r}")
         v = self.pixel_blur_px2

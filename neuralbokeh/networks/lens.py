@@ -77,7 +77,7 @@ from __future__ import annotations
 
 import logging
 import math
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -249,15 +249,16 @@ def _prior_shape(cfg: Any, aperture: dict | None) -> Aperture:
     return aperture_from_dict(aperture["shape"])
 
 
-def _scatter(feats: torch.Tensor, kern: torch.Tensor, which: torch.Tensor, s: int, slope: torch.Tensor | None = None,
+def _scatter(feats: torch.Tensor, kern: torch.Tensor, which: torch.Tensor, s: int, extra: list[torch.Tensor] | tuple = (),
              flow: torch.Tensor | None = None) -> torch.Tensor:
     """(colour x gate, gate) ``(M, 4, win, win)`` scattered by the kernels ``kern[which]``
     (``(tiles, 3, k, k)``): ``(M, 6, win, win)`` (colour, per-channel coverage), 'same' size,
-    on a grid ``s`` times coarser when ``s > 1``. With the kernels' ``slope`` (Hermite blend),
-    ``feats`` ``(M, 8, win, win)`` also holds (colour x slope weight, slope weight), scattered
-    by the slope and added. ``flow`` ``(M, 2, win, win)`` px (``model.field_flow``): the
-    features are first moved by it (:func:`_flow_where_it_moves`), on the coarse grid when
-    ``s > 1`` (the flow box-averaged as the features, in coarse px)."""
+    on a grid ``s`` times coarser when ``s > 1``. Each further kernel of ``extra`` (shaped as
+    ``kern``: the Hermite blend's slope, the field gradient's x and y) scatters the next 4
+    channels of ``feats`` ``(M, 4 + 4 len(extra), win, win)``, added. ``flow`` ``(M, 2, win,
+    win)`` px (``model.field_flow``): the features are first moved by it
+    (:func:`_flow_where_it_moves`), on the coarse grid when ``s > 1`` (the flow box-averaged as
+    the features, in coarse px)."""
     win = feats.shape[-1]
     moves = None if flow is None else flow.abs().flatten(1).amax(dim=1) >= FLOW_MIN_PX
     if s > 1:
@@ -266,17 +267,16 @@ def _scatter(feats: torch.Tensor, kern: torch.Tensor, which: torch.Tensor, s: in
         if moves is not None and bool(moves.any()):
             flow = F.avg_pool2d(F.pad(flow, (0, size - win, 0, size - win)), s) / s
         kern = reduce_kernel(kern, s)
-        slope = None if slope is None else reduce_kernel(slope, s)
+        extra = [reduce_kernel(e, s) for e in extra]
     if moves is not None:
         feats = _flow_where_it_moves(feats, flow, moves)
     k, n = kern.shape[-1], feats.shape[-1]
     fs = next_fast_len(n + k - 1)
     fx = torch.fft.rfft2(feats, s=(fs, fs))
-    fk = torch.fft.rfft2(kern, s=(fs, fs))[which]  # (M, 3, ...) per tile
-    prod = torch.cat([fx[:, :3] * fk, fx[:, 3:4] * fk], dim=1)  # (M, 6, ...)
-    if slope is not None:
-        fd = torch.fft.rfft2(slope, s=(fs, fs))[which]
-        prod = prod + torch.cat([fx[:, 4:7] * fd, fx[:, 7:8] * fd], dim=1)
+    prod = 0
+    for i, kn in enumerate([kern, *extra]):
+        fk = torch.fft.rfft2(kn, s=(fs, fs))[which]  # (M, 3, ...) per tile
+        prod = prod + torch.cat([fx[:, 4 * i : 4 * i + 3] * fk, fx[:, 4 * i + 3 : 4 * i + 4] * fk], dim=1)  # (M, 6, ...)
     out = torch.fft.irfft2(prod, s=(fs, fs))[..., k // 2 : k // 2 + n, k // 2 : k // 2 + n]  # 'same'
     if s > 1:
         out = F.interpolate(out, scale_factor=s, mode="bilinear", align_corners=False)[..., :win, :win]
@@ -350,15 +350,27 @@ def vignette_log_mask(pos: torch.Tensor, vignette: torch.Tensor, size: int) -> t
     return -F.softplus((r - torch.exp(vignette[2])) / pupil_step(size))  # = log sigmoid((radius - r) / step)
 
 
+def tile_centres_px(layout: TileLayout, height: int, width: int) -> np.ndarray:
+    """``(tiles, 2)``: the centre (x, y; px from the frame's top-left corner) of each tile's core
+    in a ``height x width`` frame, where its pupils are taken."""
+    regions = [layout.source_region(k, height, width) for k in range(layout.num_tiles)]
+    return np.array([(0.5 * (c0 + c1), 0.5 * (r0 + r1)) for r0, r1, c0, c1 in regions], dtype=np.float64)
+
+
+def window_offsets_px(layout: TileLayout, height: int, width: int) -> np.ndarray:
+    """``(tiles, 2)``: the top-left corner of each tile's window less its core's centre
+    (:func:`tile_centres_px`; x, y px) in a ``height x width`` frame: window pixel ``(i, j)``'s
+    centre lies ``(j + 0.5, i + 0.5)`` px from the corner, beyond the frame too (its padding)."""
+    top, _, left, _ = layout.pads(height, width)
+    corners = np.array([(c - left, r - top) for _, r, c in layout.origins()], dtype=np.float64)
+    return corners - tile_centres_px(layout, height, width)
+
+
 def field_positions(layout: TileLayout, height: int, width: int, window: torch.Tensor) -> torch.Tensor:
     """The sensor position of each tile's core centre, ``(B, tiles, 2)`` as ``(x, y)`` in [-1, 1]
     (the whole sensor's left/top edge at -1), for images of ``height x width`` px lying on the
     sensor windows ``window`` ``(B, 4)`` = (left, top, width, height) in fractions of the sensor."""
-    centres = []
-    for k in range(layout.num_tiles):
-        r0, r1, c0, c1 = layout.source_region(k, height, width)
-        centres.append(((c0 + c1) / (2.0 * width), (r0 + r1) / (2.0 * height)))
-    c = torch.tensor(centres, dtype=window.dtype, device=window.device)  # (T, 2) fractions of the image
+    c = torch.tensor(tile_centres_px(layout, height, width) / [width, height], dtype=window.dtype, device=window.device)
     x = window[:, None, 0] + window[:, None, 2] * c[None, :, 0]
     y = window[:, None, 1] + window[:, None, 3] * c[None, :, 1]
     return torch.stack([x, y], dim=-1) * 2.0 - 1.0
@@ -389,6 +401,21 @@ def pupil_centroids(pupils: torch.Tensor) -> torch.Tensor:
     axis = torch.linspace(-PUPIL_EXTENT, PUPIL_EXTENT, t.shape[-1], dtype=t.dtype, device=t.device)
     total = t.sum(dim=(-2, -1)).clamp_min(_EPS)
     return torch.stack([(t.sum(-2) * axis).sum(-1) / total, (t.sum(-1) * axis).sum(-1) / total], dim=-1)
+
+
+class FieldParts(NamedTuple):
+    """:meth:`LensBokeh.field_parts`: a frame's tiles' pupils ``(B T, 2, 3, P, P)`` (log), the
+    centroid drift ``(B T, 2, 3, win, win)`` (None where the pupils do not vary), the field flow's
+    centroid offsets ``(B T, 2, 2, win, win)`` (``model.field_flow``), and for
+    ``model.field_gradient`` :meth:`LensBokeh.neighbour_pupils` ``(4, B T, ...)``, field units
+    per px ``(B T, 2)`` and :meth:`LensBokeh.tile_offsets_px` ``(T, 2, win, win)``."""
+
+    pupils: torch.Tensor
+    drift: torch.Tensor | None = None
+    offsets: torch.Tensor | None = None
+    neighbours: torch.Tensor | None = None
+    per_px: torch.Tensor | None = None
+    pixel_offsets: torch.Tensor | None = None
 
 
 class LensBokeh(nn.Module):
@@ -484,6 +511,43 @@ class LensBokeh(nn.Module):
             raise ValueError(f"window must have shape ({batch}, 4) or (1, 4): (left, top, width, height), got {tuple(window.shape)}")
         window = window.expand(batch, 4)
         return self.pupils_at(field_positions(layout, height, width, window.to(device=device, dtype=dtype)))
+
+    def neighbour_pupils(self, layout: TileLayout, height: int, width: int, window: torch.Tensor | None = None,
+                         batch: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
+        """For ``model.field_gradient``: the pupils ``FIELD_DELTA`` field units right of, left of,
+        below and above each tile's centre, ``(4, B T, 2, 3, P, P)`` (log), and the field units
+        per px of each tile's frame ``(B T, 2)`` (x, y), as :meth:`tile_pupils` lays them."""
+        device, dtype = self.pupil_shared.device, self.pupil_shared.dtype
+        if window is None:
+            window = torch.tensor([[0.0, 0.0, 1.0, 1.0]], device=device, dtype=dtype)
+        window = window.to(device=device, dtype=dtype).expand(batch, 4)
+        pos = field_positions(layout, height, width, window)  # (B, T, 2)
+        steps = FIELD_DELTA * torch.tensor([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]], device=device, dtype=dtype)
+        pupils = self.pupils_at((pos[None] + steps[:, None, None]).flatten(0, 1))  # (4 B, T, 2, 3, P, P)
+        per_px = 2.0 * window[:, 2:] / torch.tensor([float(width), float(height)], device=device, dtype=dtype)  # (B, 2)
+        return pupils.unflatten(0, (4, batch)).flatten(1, 2), per_px.repeat_interleave(layout.num_tiles, dim=0)
+
+    def kernel_gradients(self, n: int, neighbours: torch.Tensor, diameter: float, per_px: torch.Tensor) -> torch.Tensor:
+        """Band ``n``'s kernels' derivative in the source pixel's position (per px, x and y),
+        ``(M, 2, 2, 3, k, k)`` (axis, side, channel): a central difference of the kernels of
+        :meth:`neighbour_pupils` ``(4, M, ...)`` at CoC ``diameter`` (px), ``per_px`` ``(M, 2)``
+        field units per px. Each sums to 0 (every kernel sums to 1)."""
+        m = neighbours.shape[1]
+        k4 = self.kernels(n, neighbours.flatten(0, 1), diameter, self._supersampling(diameter)).unflatten(0, (4, m))
+        scale = per_px / (2.0 * FIELD_DELTA)  # (M, 2)
+        return torch.stack([(k4[0] - k4[1]) * scale[:, 0, None, None, None, None],
+                            (k4[2] - k4[3]) * scale[:, 1, None, None, None, None]], dim=1)
+
+    def tile_offsets_px(self, layout: TileLayout, height: int, width: int, device: torch.device,
+                        dtype: torch.dtype) -> torch.Tensor:
+        """``(T, 2, win, win)``: each window pixel's centre less its tile's core centre (px, x and
+        y; :func:`window_offsets_px`), where :meth:`tile_pupils` places the tile's pupils."""
+        win = layout.window
+        ramp = torch.arange(win, device=device, dtype=dtype) + 0.5
+        corner = torch.tensor(window_offsets_px(layout, height, width), device=device, dtype=dtype)  # (T, 2)
+        x = (ramp[None, :] + corner[:, :1])[:, None, :].expand(-1, win, -1)
+        y = (ramp[None, :] + corner[:, 1:])[:, :, None].expand(-1, -1, win)
+        return torch.stack([x, y], dim=1)
 
     def _field_lattice(self, height: int, width: int, window: torch.Tensor | None,
                        batch: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -684,6 +748,24 @@ class LensBokeh(nn.Module):
         return (up - down) * (float(step_px) / (2.0 * SLOPE_DELTA_PX))
 
     # -- forward ---------------------------------------------------------------------------
+    def field_parts(self, layout: TileLayout, height: int, width: int, window: torch.Tensor | None, batch: int) -> FieldParts:
+        """What a ``height x width`` frame on the sensor ``window`` ``(B, 4)`` (default: the whole
+        sensor) needs of the pupils' change across the field (:class:`FieldParts`): the drift,
+        the flow's offsets and the gradient's parts only where the pupils vary and the config
+        asks for them."""
+        pupils = self.tile_pupils(layout, height, width, window, batch).flatten(0, 1)  # (B T, 2, 3, P, P)
+        if not self.pupils_vary():  # the drift is exactly zero: no map, every gain 1
+            return FieldParts(pupils)
+        win = layout.window
+        drift = self.drift_map(height, width, window, batch)
+        drift = tile(drift.flatten(1, 2), layout).view(-1, 2, 3, win, win)  # (B T, 2, 3, win, win)
+        offsets = self.centroid_offsets(layout, pupils, height, width, window, batch) if self.config.field_flow else None
+        if not self.config.field_gradient:
+            return FieldParts(pupils, drift, offsets)
+        neighbours, per_px = self.neighbour_pupils(layout, height, width, window, batch)
+        return FieldParts(pupils, drift, offsets, neighbours, per_px,
+                          self.tile_offsets_px(layout, height, width, pupils.device, pupils.dtype))
+
     def frame_coc(self, x: torch.Tensor, plan_coc_px: float | None = None) -> float:
         """The largest |CoC| (px) the frame's plan covers: ``plan_coc_px``, else the input's own."""
         if plan_coc_px is not None:
@@ -732,16 +814,9 @@ class LensBokeh(nn.Module):
             return acc.view(b, n_t, 3, 6, win, win)
         # one set of pupils per distinct window: whole frames (or equal windows) share their tiles' kernels
         shared = window is None or bool((window == window[:1]).all())
-        pupils = self.tile_pupils(layout, height, width, None if window is None else window[:1] if shared else window,
-                                  1 if shared else b).flatten(0, 1)  # (B' T, 2, 3, P, P)
-        drift = None
-        if self.pupils_vary():  # else the drift is exactly zero: no map, every gain 1
-            drift = self.drift_map(height, width, None if window is None else window[:1] if shared else window, 1 if shared else b)
-            drift = tile(drift.flatten(1, 2), layout).view(-1, 2, 3, win, win)  # (B' T, 2, 3, win, win)
-        offsets = None  # where each pixel's pupil centroid lies from its tile's (model.field_flow)
-        if cfg.field_flow and drift is not None:
-            offsets = self.centroid_offsets(layout, pupils, height, width, None if window is None else window[:1] if shared
-                                            else window, 1 if shared else b)  # (B' T, 2, 2, win, win)
+        field = self.field_parts(layout, height, width, None if window is None else window[:1] if shared else window,
+                                 1 if shared else b)
+        pupils, drift, offsets = field.pupils, field.drift, field.offsets
         coc_flat = coc.reshape(b * n_t, win, win)
         rgb_flat = rgb.reshape(b * n_t, 3, win, win)
         scales = scales or {}
@@ -751,7 +826,7 @@ class LensBokeh(nn.Module):
                 g, g_slope = (v * src[:, :, 0] for v in hermite_weights(pos, n))  # (B, T, win, win) each
             else:
                 g, g_slope = _gate(pos, n) * src[:, :, 0], None
-            kern = slope = None
+            kern = slope = grad = None
             for side, sign in ((0, 1.0), (1, -1.0)):
                 side_mask = ((coc > 0) if side == 0 else (coc < 0)).to(x.dtype)
                 gs = g * side_mask
@@ -763,6 +838,8 @@ class LensBokeh(nn.Module):
                 if kern is None:
                     kern = self.kernels(n, pupils, float(diameters[n]))
                     slope = self.kernel_slopes(n, pupils, float(diameters[n]), plan.band_step_px(n)) if hermite else None
+                    if field.neighbours is not None:
+                        grad = self.kernel_gradients(n, field.neighbours, float(diameters[n]), field.per_px)
                 which = idx % n_t if shared else idx
                 w = gs.reshape(b * n_t, 1, win, win)[idx]
                 colour = rgb_flat[idx]
@@ -772,9 +849,13 @@ class LensBokeh(nn.Module):
                 if hermite:  # the slope's weights on the same pixels, with the same side mask
                     ws = (g_slope * side_mask).reshape(b * n_t, 1, win, win)[idx]
                     feats = torch.cat([feats, colour * ws, ws], dim=1)  # (M, 8, win, win)
+                if grad is not None:  # the kernels' change across the tile: by each pixel's offset (px)
+                    wo = w * field.pixel_offsets[idx % n_t]  # (M, 2, win, win)
+                    feats = torch.cat([feats, colour * wo[:, :1], wo[:, :1], colour * wo[:, 1:], wo[:, 1:]], dim=1)
                 # the CoC radius (the channels' mean, point-reflected in front) x the offset
                 flow = None if offsets is None else self.gain_slopes(float(diameters[n]))[side].mean() * offsets[which, side]
-                out = _scatter(feats, kern[:, side], which, scales.get(n, 1), None if slope is None else slope[:, side], flow)
+                extra = ([] if slope is None else [slope[:, side]]) + ([] if grad is None else [grad[:, 0, side], grad[:, 1, side]])
+                out = _scatter(feats, kern[:, side], which, scales.get(n, 1), extra, flow)
                 bw = bucket_weights(sign * float(diameters[n]), coc_flat[idx], self.occlusion_margin(float(diameters[n])))
                 contrib = bw.permute(1, 0, 2, 3).unsqueeze(2) * out.unsqueeze(1)  # (M, 3, 6, win, win)
                 # one band at a time: memory stays O(image), not O(image x bands); in place, so no
