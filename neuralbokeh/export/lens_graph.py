@@ -334,7 +334,9 @@ def _band(b: GraphBuilder, k: int, n: int, side: int, pos: str, side_mask: str, 
     the binned one, :func:`~neuralbokeh.networks.lens.reduce_kernel`), by rows
     (:func:`conv_rows`) or one depthwise ``Conv``. ``flow``: (the window's colour times this
     side's centroid drift ``(B, 3, win, win)``, the gain's slope ``(3,)``): the colour scattered
-    is ``rgb - slope x that`` (:meth:`~neuralbokeh.networks.lens.LensBokeh.colour_gains`).
+    is ``rgb - slope x that`` (:meth:`~neuralbokeh.networks.lens.LensBokeh.colour_gains`); with
+    ``gradient``, (the drift alone, the slope): the scattered coverage is divided by ``1 - slope
+    x drift`` instead.
     ``slope``: the kernels' slope in the diameter (Hermite blend, ``(2, 3, k, k)`` as
     ``kernel``): each group of the convolution then takes the (kernel, slope) features of one channel.
     ``warp``: (this side's centroid offsets ``(1, 2, win, win)``, the CoC radius (px, signed as
@@ -351,12 +353,13 @@ def _band(b: GraphBuilder, k: int, n: int, side: int, pos: str, side_mask: str, 
         weights = [g.op("Relu", g.op("Sub", one, g.op("Abs", g.op("Sub", pos, g.c(f"n{n}", float(n))))))]  # the hat
     else:
         weights = list(_hermite_weights(g, pos, n))
-    if flow is not None:
+    if flow is not None and gradient is None:
         rgb = g.op("Sub", rgb, g.op("Mul", flow[0], g.c("slope", np.asarray(flow[1]).reshape(1, 3, 1, 1))))
     gates = [g.op("Mul", g.op("Mul", weight, src_mask), side_mask) for weight in weights]
-    if gradient is not None:  # the value gate times the pixel's offset from the tile's centre, x and y
-        gates += [g.op("Mul", gates[0], offset) for offset in gradient[1]]
     parts = [g.op("Concat", g.op("Mul", rgb, gate), gate, gate, gate, axis=1) for gate in gates]  # (B, 6, win, win) each
+    if gradient is not None:  # the value gate x the pixel's offset from the tile's centre, x and y
+        offset_gates = [g.op("Mul", gates[0], offset) for offset in gradient[1]]
+        parts += [g.op("Concat", g.op("Mul", rgb, gate), gate, gate, gate, axis=1) for gate in offset_gates]
     if len(parts) == 1:
         feats = parts[0]
     else:  # interleaved per channel, e.g. (kernel, slope): (B, 6, P, win, win) -> (B, 6 P, win, win)
@@ -392,6 +395,12 @@ def _band(b: GraphBuilder, k: int, n: int, side: int, pos: str, side_mask: str, 
                   coordinate_transformation_mode="half_pixel")
         out = g.op("Slice", up, g.c("zeros2", [0, 0], np.int64), g.c("win2", [win, win], np.int64),
                    g.c("axes_hw", [2, 3], np.int64))
+    if flow is not None and gradient is not None:  # the coverage divided by the colour gain at the receiver
+        gain = g.op("Sub", one, g.op("Mul", flow[0], g.c("slope", np.asarray(flow[1]).reshape(1, 3, 1, 1))))
+        ax1 = g.c("ax1", [1], np.int64)
+        colour_out = g.op("Slice", out, g.c("c0", [0], np.int64), g.c("c3", [3], np.int64), ax1)
+        cover_out = g.op("Slice", out, g.c("c3", [3], np.int64), g.c("c6", [6], np.int64), ax1)
+        out = g.op("Concat", colour_out, g.op("Div", cover_out, gain), axis=1)
     delta = g.op("Sub", g.c("band_coc", band_coc), c)  # < 0: the band is nearer than the receiver
     zero, inv = g.c("zero", 0.0), g.c("inv_margin", 1.0 / margin)
     near = g.op("Clip", g.op("Mul", g.op("Sub", g.op("Neg", delta), g.c("margin", margin)), inv), zero, one)
@@ -449,9 +458,11 @@ def _tile(b: GraphBuilder, k: int, cut: tuple[str, str, str | None], kernels: Ma
         front = g.op("Cast", g.op("Less", c, g.c("zero", 0.0)), to=TensorProto.FLOAT)
         flags = g.op("Gather", "band_active", g.c("index", k, np.int64))  # (N, 2) of this tile
         drift = None if flow is None else _cut(g, flow[0], cut)
-        moved = None if flow is None else [
-            g.op("Mul", rgb, g.op("Slice", drift, g.c(f"d{s}0", [3 * s], np.int64), g.c(f"d{s}1", [3 * s + 3], np.int64),
-                                  g.c("ax1", [1], np.int64))) for s in range(2)]  # colour x drift, per side
+        moved = None if flow is None else [  # colour x drift per side; the drift alone for the gradient's coverage
+            g.op("Slice", drift, g.c(f"d{s}0", [3 * s], np.int64), g.c(f"d{s}1", [3 * s + 3], np.int64), g.c("ax1", [1], np.int64))
+            for s in range(2)]
+        if moved is not None and gradients is None:
+            moved = [g.op("Mul", rgb, d) for d in moved]
         pixel_offsets = None  # LensBokeh.tile_offsets_px: each window pixel's centre less the tile's, x and y
         if gradients is not None:
             ramp = np.arange(win, dtype=np.float64) + 0.5

@@ -531,7 +531,10 @@ class LensBokeh(nn.Module):
         """Band ``n``'s kernels' derivative in the source pixel's position (per px, x and y),
         ``(M, 2, 2, 3, k, k)`` (axis, side, channel): a central difference of the kernels of
         :meth:`neighbour_pupils` ``(4, M, ...)`` at CoC ``diameter`` (px), ``per_px`` ``(M, 2)``
-        field units per px. Each sums to 0 (every kernel sums to 1)."""
+        field units per px. Each sums to 0 (every kernel sums to 1), so a point keeps its light;
+        on a plane their first moment brightens where the blur's centroid converges: to first
+        order :meth:`colour_gains` at the receiving pixel, which the scattered coverage is divided
+        by (an opaque plane covers every pixel fully however its light flows)."""
         m = neighbours.shape[1]
         k4 = self.kernels(n, neighbours.flatten(0, 1), diameter, self._supersampling(diameter)).unflatten(0, (4, m))
         scale = per_px / (2.0 * FIELD_DELTA)  # (M, 2)
@@ -843,19 +846,21 @@ class LensBokeh(nn.Module):
                 which = idx % n_t if shared else idx
                 w = gs.reshape(b * n_t, 1, win, win)[idx]
                 colour = rgb_flat[idx]
-                if drift is not None:
+                if drift is not None and grad is None:  # the gradient's kernels already move the light (their first moment)
                     colour = colour * self.colour_gains(drift[which, side], float(diameters[n]), side)  # (M, 3, win, win)
                 feats = torch.cat([colour * w, w], dim=1)  # (M, 4, win, win)
                 if hermite:  # the slope's weights on the same pixels, with the same side mask
                     ws = (g_slope * side_mask).reshape(b * n_t, 1, win, win)[idx]
                     feats = torch.cat([feats, colour * ws, ws], dim=1)  # (M, 8, win, win)
-                if grad is not None:  # the kernels' change across the tile: by each pixel's offset (px)
+                if grad is not None:  # the kernels' change across the tile: by each pixel's offset (px), colour only
                     wo = w * field.pixel_offsets[idx % n_t]  # (M, 2, win, win)
                     feats = torch.cat([feats, colour * wo[:, :1], wo[:, :1], colour * wo[:, 1:], wo[:, 1:]], dim=1)
                 # the CoC radius (the channels' mean, point-reflected in front) x the offset
                 flow = None if offsets is None else self.gain_slopes(float(diameters[n]))[side].mean() * offsets[which, side]
                 extra = ([] if slope is None else [slope[:, side]]) + ([] if grad is None else [grad[:, 0, side], grad[:, 1, side]])
                 out = _scatter(feats, kern[:, side], which, scales.get(n, 1), extra, flow)
+                if grad is not None:  # coverage is geometric: divided by a uniform field's light, as the reference scatter's
+                    out = torch.cat([out[:, :3], out[:, 3:] / self.colour_gains(drift[which, side], float(diameters[n]), side)], 1)
                 bw = bucket_weights(sign * float(diameters[n]), coc_flat[idx], self.occlusion_margin(float(diameters[n])))
                 contrib = bw.permute(1, 0, 2, 3).unsqueeze(2) * out.unsqueeze(1)  # (M, 3, 6, win, win)
                 # one band at a time: memory stays O(image), not O(image x bands); in place, so no
