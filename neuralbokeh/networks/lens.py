@@ -394,6 +394,12 @@ def field_weights(pos: torch.Tensor, g: int) -> torch.Tensor:
     return w.flatten(1)
 
 
+def _neighbour_steps(device: torch.device, dtype: torch.dtype) -> torch.Tensor:
+    """``(4, 2)``: ``FIELD_DELTA`` field units right, left, down and up, the central differences'
+    steps of the drift and of the field gradient."""
+    return FIELD_DELTA * torch.tensor([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]], device=device, dtype=dtype)
+
+
 def pupil_centroids(pupils: torch.Tensor) -> torch.Tensor:
     """``(..., 2)``: the centroid (x right, y down; aperture radii) of the transmission of each
     log-pupil ``(..., P, P)``: where a kernel's light lands on average, in radii of its CoC."""
@@ -522,7 +528,7 @@ class LensBokeh(nn.Module):
             window = torch.tensor([[0.0, 0.0, 1.0, 1.0]], device=device, dtype=dtype)
         window = window.to(device=device, dtype=dtype).expand(batch, 4)
         pos = field_positions(layout, height, width, window)  # (B, T, 2)
-        steps = FIELD_DELTA * torch.tensor([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]], device=device, dtype=dtype)
+        steps = _neighbour_steps(device, dtype)
         pupils = self.pupils_at((pos[None] + steps[:, None, None]).flatten(0, 1))  # (4 B, T, 2, 3, P, P)
         per_px = 2.0 * window[:, 2:] / torch.tensor([float(width), float(height)], device=device, dtype=dtype)  # (B, 2)
         return pupils.unflatten(0, (4, batch)).flatten(1, 2), per_px.repeat_interleave(layout.num_tiles, dim=0)
@@ -592,7 +598,7 @@ class LensBokeh(nn.Module):
         effect (:meth:`colour_gains`)."""
         pos, rows, cols, per_px, (gy, gx) = self._field_lattice(height, width, window, batch)
         device, dtype = pos.device, pos.dtype
-        steps = FIELD_DELTA * torch.tensor([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]], device=device, dtype=dtype)
+        steps = _neighbour_steps(device, dtype)
         # the four neighbours of every node in one evaluation: (4, nodes, 2, 3, 2)
         mu = pupil_centroids(self.pupils_at(pos + steps[:, None])).reshape(4, -1, 2, 3, 2)
         slope_x = (mu[0, ..., 0] - mu[1, ..., 0]) / (2.0 * FIELD_DELTA)  # (nodes, 2, 3) per field unit
@@ -852,7 +858,7 @@ class LensBokeh(nn.Module):
                 if hermite:  # the slope's weights on the same pixels, with the same side mask
                     ws = (g_slope * side_mask).reshape(b * n_t, 1, win, win)[idx]
                     feats = torch.cat([feats, colour * ws, ws], dim=1)  # (M, 8, win, win)
-                if grad is not None:  # the kernels' change across the tile: by each pixel's offset (px), colour only
+                if grad is not None:  # the kernels' change across the tile: by each pixel's offset (px)
                     wo = w * field.pixel_offsets[idx % n_t]  # (M, 2, win, win)
                     feats = torch.cat([feats, colour * wo[:, :1], wo[:, :1], colour * wo[:, 1:], wo[:, 1:]], dim=1)
                 # the CoC radius (the channels' mean, point-reflected in front) x the offset
