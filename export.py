@@ -51,6 +51,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-field-flow", action="store_true",
                    help="lens network: leave out model.field_flow (where a cat-eye moves a tile's light, it stays at the "
                         "tile centre's place; faster: 1.16x at 1080p with a cat-eye of 0.6, docs/benchmarks.md)")
+    p.add_argument("--no-field-gradient", action="store_true",
+                   help="lens network: leave out model.field_gradient (each tile's kernels stay those of its centre; faster: "
+                        "1.24x at 1080p with a cat-eye of 0.6, docs/benchmarks.md)")
     p.add_argument("--full-parity", action="store_true",
                    help="lens network: check every tile against PyTorch (default: the corners, edge middles and centre of "
                         "the tile grid; minutes more on a 4K plate)")
@@ -66,7 +69,8 @@ def main(argv: list[str] | None = None) -> int:
                                    size=(args.size[1], args.size[0]) if args.size else None,
                                    window=SensorWindow(*args.sensor_window) if args.sensor_window else None,
                                    max_coc_px=args.max_coc, tile_px=args.tile, full_parity=args.full_parity,
-                                   field_flow=False if args.no_field_flow else None, progress=True)
+                                   field_flow=False if args.no_field_flow else None,
+                                   field_gradient=False if args.no_field_gradient else None, progress=True)
     except (FileNotFoundError, FileExistsError, PermissionError, ValueError) as e:
         raise SystemExit(f"error: {e}")
     meta = report["metadata"]

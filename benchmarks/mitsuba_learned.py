@@ -17,7 +17,7 @@
    ``train.loss_pool = --loss-pool``: the renders' noise would otherwise pull the learned blur
    small, ``docs/network.md``; at a constant rate, the weights averaged over the last ~100 steps,
    ``train.ema_steps = 100``; ``KEY=VALUE`` overrides go to ``train.py`` after these, e.g.
-   ``train.pupil_tv=1e-3`` or ``model.field_flow=false model.field_gradient=true``).
+   ``train.pupil_tv=1e-3`` or ``model.field_gradient=false model.field_flow=true``).
 4. Evaluates the checkpoint next to every classical baseline of ``neuralbokeh.evaluation.evaluate`` on the
    held-out split (``report/``: ``report.md`` with the per-scene comparison, error-vs-runtime
    plot, image grids) and on its clean render (``report_clean/``), and prints both.

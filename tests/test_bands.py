@@ -21,6 +21,7 @@ from neuralbokeh.core.bands import (
 from neuralbokeh.export.exporter import plate_model
 from neuralbokeh.networks import ModelConfig
 from neuralbokeh.networks.lens import band_gates
+from neuralbokeh.ops.tiles import tile
 from neuralbokeh.runtime import OnnxBokeh
 
 
@@ -129,13 +130,18 @@ def test_the_file_carries_the_plate_plan_and_the_runtime_plans_with_it(busy_chec
     coc = g.uniform(-1.0, 1.0, (1, m.height, m.width)) * want.c_plan_px / 3  # a third of the range,
     coc[..., : m.width // 2] = 0.0  # and the left half in focus
     flags = active_bands(coc, want, m.layout)
-    gates = band_gates(torch.from_numpy(coc).float(), want.c_plan_px, want.blocks)  # the network's own
+    # the network's own gates on what each tile scatters: its windows (the frame's mirror in their
+    # padding) under its source mask
+    win, layout = m.layout.window, m.layout
+    gates = band_gates(torch.from_numpy(coc).float(), want.c_plan_px, want.blocks)  # (1, H, W, N + 1)
+    gates = tile(gates.permute(0, 3, 1, 2).contiguous(), layout).view(layout.num_tiles, want.blocks + 1, win, win)
+    signed = tile(torch.from_numpy(coc)[:, None].float(), layout).view(layout.num_tiles, win, win)
+    masks = torch.from_numpy(layout.source_masks()) > 0
     for n in range(1, want.blocks + 1):
         for k in range(m.num_tiles):
-            r0, r1, c0, c1 = m.layout.source_region(k, m.height, m.width)
-            region = gates[:, r0:r1, c0:c1, n]
-            for side, sel in enumerate((coc[:, r0:r1, c0:c1] > 0, coc[:, r0:r1, c0:c1] < 0)):
-                used = bool(((region > 0) & torch.from_numpy(sel)).any())
+            region = gates[k, n][masks[k]]
+            for side, sel in enumerate((signed[k][masks[k]] > 0, signed[k][masks[k]] < 0)):
+                used = bool(((region > 0) & sel).any())
                 assert flags[k, n - 1, side] >= used, (n, k, side)
     assert flags.sum() < flags.size  # and something was left out
     running = g.random(m.num_tiles) < 0.5  # the runtime asks only for the tiles that run

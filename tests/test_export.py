@@ -101,7 +101,7 @@ def test_export_direct_matches_pytorch_and_carries_metadata(busy_checkpoint, tmp
         {k: v for k, v in ckpt["contract"].items() if not k.endswith("coc_px")}
     assert meta["format_version"] == 2 and meta["layout"] == list(model.layout(*model.contract.size)) and meta["package_version"]
     assert meta["sensor_window"] == {"left": 0.0, "top": 0.0, "width": 1.0, "height": 1.0}
-    assert _warped_bands(out)  # the busy cat-eye's field flow (model.field_flow) is in the parity below
+    assert meta["model_config"]["field_gradient"]  # the busy cat-eye's field gradient (the default) is in the parity below
     # independent check on fresh inputs, batch of 3 (dynamic batch)
     x = calibration_inputs(*model.contract.size, count=3, seed=5)
     got = _run_onnx(out, x[:, :3].numpy(), x[:, 3:].numpy())
@@ -111,23 +111,35 @@ def test_export_direct_matches_pytorch_and_carries_metadata(busy_checkpoint, tmp
     assert np.abs(want - x[:, :3].numpy()).max() > 1e-2  # the busy network is far from the identity
 
 
-def test_an_export_may_leave_out_the_field_flow(busy_checkpoint, tmp_path):
-    """``export.py --no-field-flow``: the file samples no flow, says so in its model config, and
-    matches the network without it."""
+def _with_model_config(checkpoint, path, **changes):
+    """``checkpoint`` saved again at ``path`` with ``changes`` to its model config (the same weights)."""
+    data = load_checkpoint(checkpoint)
+    data["model_config"] = {**data["model_config"], **changes}
+    save_checkpoint(path, {k: v for k, v in data.items() if k not in ("format", "format_version", "package_version")})
+    return path
+
+
+@pytest.mark.parametrize("option", ["field_flow", "field_gradient"])
+def test_an_export_may_leave_out_the_field_flow_or_gradient(busy_checkpoint, tmp_path, option):
+    """``export.py --no-field-flow`` (of a model with the flow) and ``--no-field-gradient`` (the
+    default model): the file says so in its model config and matches the network without it."""
+    ckpt = busy_checkpoint
+    if option == "field_flow":
+        ckpt = _with_model_config(busy_checkpoint, tmp_path / "flow.pt", field_flow=True, field_gradient=False)
     out = tmp_path / "still.onnx"
-    r = subprocess.run([sys.executable, str(ROOT / "export.py"), str(busy_checkpoint), "--out", str(out), "--kernels", "direct",
-                        "--threads", "1", "--no-field-flow"], capture_output=True, text=True, cwd=ROOT)
+    r = subprocess.run([sys.executable, str(ROOT / "export.py"), str(ckpt), "--out", str(out), "--kernels", "direct",
+                        "--threads", "1", f"--no-{option.replace('_', '-')}"], capture_output=True, text=True, cwd=ROOT)
     assert r.returncode == 0, r.stderr
     assert not _warped_bands(out)
-    assert json.loads({p.key: p.value for p in onnx.load(out).metadata_props}["neuralbokeh"])["model_config"]["field_flow"] is False
-    model, ckpt = load_model(busy_checkpoint)
-    still = build_model(dataclasses.replace(model.config, field_flow=False), model.contract).eval()
-    still.load_state_dict(ckpt["model_state"])
+    assert json.loads({p.key: p.value for p in onnx.load(out).metadata_props}["neuralbokeh"])["model_config"][option] is False
+    model, data = load_model(ckpt)
+    still = build_model(dataclasses.replace(model.config, **{option: False}), model.contract).eval()
+    still.load_state_dict(data["model_state"])
     x = calibration_inputs(*model.contract.size, count=1, seed=4)
     with torch.no_grad():
         want, moved = still(x).numpy(), model(x).numpy()
     assert np.abs(_run_onnx(out, x[:, :3].numpy(), x[:, 3:].numpy()) - want).max() < 1e-4
-    assert np.abs(moved - want).max() > 1e-3  # the busy cat-eye's flow moves light
+    assert np.abs(moved - want).max() > 1e-3  # the busy cat-eye's flow or gradient moves light
 
 
 def test_export_cli_prints_parity_and_fails_over_tolerance(busy_checkpoint, tmp_path):
@@ -167,7 +179,9 @@ def test_lowrank_export_matches_its_reference_and_approximates_the_model(busy_pa
 
 
 def test_fp16_export_stays_within_its_tolerance(busy_checkpoint, tmp_path):
-    report = export_checkpoint(busy_checkpoint, tmp_path / "h.onnx", fp16=True, kernels="direct", threads=1)
+    # without the field gradient, whose bands stay float32 (docs/runtime.md)
+    ckpt = _with_model_config(busy_checkpoint, tmp_path / "no_gradient.pt", field_gradient=False)
+    report = export_checkpoint(ckpt, tmp_path / "h.onnx", fp16=True, kernels="direct", threads=1)
     assert report["tolerance"] == 2e-2 and max(report["parity"].values()) <= 2e-2
     m = onnx.load(tmp_path / "h.onnx")
 
@@ -213,8 +227,6 @@ def test_multires_export_matches_its_pytorch_reference(busy_checkpoint, tmp_path
     scales = report["band_scales"]
     assert max(scales.values()) >= 2 and min(scales.values()) == 1  # the tiny model's wide bands are reduced
     assert max(report["parity"].values()) <= 1e-4 and max(report["approximation"].values()) > 1e-4
-    # the busy cat-eye's field flow (model.field_flow) is sampled on the coarse grids too
-    assert any(scales[n] > 1 for n in _warped_bands(tmp_path / "m.onnx")), scales
     x = calibration_inputs(*model.contract.size, count=2, seed=9)
     got = _run_onnx(tmp_path / "m.onnx", x[:, :3].numpy(), x[:, 3:].numpy())
     with torch.no_grad():
@@ -402,26 +414,25 @@ def test_the_hermite_blend_exports_direct_and_on_coarser_grids(busy_checkpoint, 
     assert np.abs(direct - hat).max() > 1e-3
 
 
-def test_the_field_gradient_exports_direct_and_on_coarser_grids(busy_checkpoint, busy_onnx, tmp_path):
-    """``model.field_gradient``: each band's (kernel, x-gradient, y-gradient) features go through
-    one grouped convolution, directly and on the coarser grids of the default export; both match
-    their PyTorch reference, the gradient changes the output, and the file cannot add the flow."""
-    data = load_checkpoint(busy_checkpoint)
-    data["model_config"] = {**data["model_config"], "field_flow": False, "field_gradient": True}
-    ckpt = tmp_path / "gradient.pt"
-    save_checkpoint(ckpt, {k: v for k, v in data.items() if k not in ("format", "format_version", "package_version")})
+def test_the_field_flow_exports_direct_and_on_coarser_grids(busy_checkpoint, busy_onnx, tmp_path):
+    """``model.field_flow`` (the default model's weights with the flow instead of the gradient):
+    the file samples it (``GridSample``), on the coarse grids too; both match their PyTorch
+    reference, the flow's output is not the gradient's, and a gradient model cannot add the flow."""
+    ckpt = _with_model_config(busy_checkpoint, tmp_path / "flow.pt", field_flow=True, field_gradient=False)
     model, _ = load_model(ckpt)
     x = calibration_inputs(*model.contract.size, count=2, seed=7)
-    for kernels in ("direct", None):
-        report = export_checkpoint(ckpt, tmp_path / f"g_{kernels}.onnx", kernels=kernels, threads=1)
+    for kernels in ("direct", "multires:2"):
+        report = export_checkpoint(ckpt, tmp_path / f"f_{kernels}.onnx", kernels=kernels, threads=1)
         assert max(report["parity"].values()) <= 1e-4, (kernels, report["parity"])
-    direct = _run_onnx(tmp_path / "g_direct.onnx", x[:, :3].numpy(), x[:, 3:].numpy())
-    flow = _run_onnx(busy_onnx, x[:, :3].numpy(), x[:, 3:].numpy())  # the same weights with the field flow
+    assert _warped_bands(tmp_path / "f_direct.onnx")
+    assert any(report["band_scales"][n] > 1 for n in _warped_bands(tmp_path / "f_multires:2.onnx")), report["band_scales"]
+    direct = _run_onnx(tmp_path / "f_direct.onnx", x[:, :3].numpy(), x[:, 3:].numpy())
+    gradient = _run_onnx(busy_onnx, x[:, :3].numpy(), x[:, 3:].numpy())  # the same weights with the field gradient
     with torch.no_grad():
         assert np.abs(direct - model(x).numpy()).max() < 1e-4
-    assert np.abs(direct - flow).max() > 1e-3
+    assert np.abs(direct - gradient).max() > 1e-3
     with pytest.raises(ValueError, match="export it without the flow"):
-        export_checkpoint(ckpt, tmp_path / "both.onnx", kernels="direct", threads=1, field_flow=True)
+        export_checkpoint(busy_checkpoint, tmp_path / "both.onnx", kernels="direct", threads=1, field_flow=True)
     assert not (tmp_path / "both.onnx").exists()
 
 

@@ -182,15 +182,15 @@ def run_session(sess: ort.InferenceSession, aif: np.ndarray, coc: np.ndarray,
 
 
 def plate_model(model: LensBokeh, size: tuple[int, int] | None = None, max_coc_px: float | None = None,
-                tile_px: int | None = None, field_flow: bool | None = None) -> LensBokeh:
+                tile_px: int | None = None, field_flow: bool | None = None, field_gradient: bool | None = None) -> LensBokeh:
     """The lens network as an export for one plate format sees it: the same weights, a contract
     of the plate's ``size`` ``(H, W)`` px (default: the trained one) whose CoC scale and largest
     CoC are the last band centre of the plan for ``max_coc_px`` (default: the trained maximum;
     larger renders CoCs beyond it, through the scaled pupil), N = that plan's bands, and tile
     cores of ``tile_px`` px (default: the trained ones) with the trained overlap, widened by what
     a CoC beyond the trained range adds to the blur's radius
-    (:func:`~neuralbokeh.networks.lens.overlap_for`); ``field_flow``: ``model.field_flow`` on or
-    off (default: the trained model's)."""
+    (:func:`~neuralbokeh.networks.lens.overlap_for`); ``field_flow``, ``field_gradient``:
+    ``model.field_flow`` and ``model.field_gradient`` on or off (default: the trained model's)."""
     if max_coc_px is not None and not (np.isfinite(max_coc_px) and max_coc_px > 0):
         raise ValueError(f"max_coc_px must be a finite number of px > 0, got {max_coc_px!r}")
     height, width = size or model.contract.size
@@ -205,10 +205,12 @@ def plate_model(model: LensBokeh, size: tuple[int, int] | None = None, max_coc_p
                                    coc_scale_px=max(plan.c_plan_px, 1.0), max_coc_px=plan.c_plan_px)
     tile = max(model.config.tile, 2 * overlap) if tile_px is None else int(tile_px)
     flow = model.config.field_flow if field_flow is None else bool(field_flow)
-    if flow and model.config.field_gradient:
+    gradient = model.config.field_gradient if field_gradient is None else bool(field_gradient)
+    if flow and gradient:
         raise ValueError("field_flow = true: this model has model.field_gradient, which already gives each pixel its own "
-                         "pupil's blur; export it without the flow")
-    plate = LensBokeh(dataclasses.replace(model.config, blocks=plan.blocks, tile=tile, overlap=overlap, field_flow=flow), contract)
+                         "pupil's blur; export it without the flow, or with field_gradient = false")
+    plate = LensBokeh(dataclasses.replace(model.config, blocks=plan.blocks, tile=tile, overlap=overlap, field_flow=flow,
+                                          field_gradient=gradient), contract)
     plate.load_state_dict(model.state_dict())
     return plate.eval()
 
@@ -227,6 +229,7 @@ def export_checkpoint(
     tile_px: int | None = None,
     full_parity: bool = False,
     field_flow: bool | None = None,
+    field_gradient: bool | None = None,
     progress: bool = False,
 ) -> dict[str, Any]:
     """Export a checkpoint to ONNX, check it against PyTorch, then move it into place.
@@ -256,8 +259,9 @@ def export_checkpoint(
             but run fewer, larger convolutions (fewer graph branches, less overlap).
         full_parity: lens network: check every tile (minutes for a 4K plate) instead of the
             :func:`parity_tiles` sample of at most 9.
-        field_flow: lens network: ``model.field_flow`` on or off in the file (default: the
-            checkpoint's; off is faster where a cat-eye moves the light).
+        field_flow, field_gradient: lens network: ``model.field_flow`` and
+            ``model.field_gradient`` on or off in the file (default: the checkpoint's; off is
+            faster where a cat-eye moves the light).
         progress: a tqdm bar over the build, the load and each parity case (the CLI's).
 
     Returns:
@@ -274,13 +278,14 @@ def export_checkpoint(
     _check_opset(opset, None)  # before the checkpoint is read
     model, ckpt = load_model(checkpoint)
     lens = model.config.architecture == "lens"
-    if not lens and (size or window or max_coc_px or tile_px or full_parity or field_flow is not None):
-        raise ValueError("size, window, max_coc_px, tile_px, full_parity and field_flow need the lens network: the paper's network "
+    if not lens and (size or window or max_coc_px or tile_px or full_parity or field_flow is not None or field_gradient is not None):
+        raise ValueError("size, window, max_coc_px, tile_px, full_parity, field_flow and field_gradient need the lens network: "
+                         "the paper's network "
                          f"renders its trained size {model.contract.size[1]}x{model.contract.size[0]} px only")
     opset = _check_opset(opset, lens)
     window = window or SensorWindow()
     if lens:
-        model = plate_model(model, size, max_coc_px, tile_px, field_flow)
+        model = plate_model(model, size, max_coc_px, tile_px, field_flow, field_gradient)
         build = _LensExport(model, LENS_DEFAULT_KERNELS if kernels is None else kernels, window)
     else:
         build = _PaperExport(model, DEFAULT_KERNELS if kernels is None else kernels)
@@ -378,6 +383,9 @@ class _LensExport:
                              for n in range(1, m.config.blocks + 1)}
         flow = None if not bool(drift.abs().max() > 0) else ((drift.numpy(), rows.numpy(), cols.numpy()), slopes)
         self.warps, self.gradient = centroids is not None, gradients is not None
+        if fp16 and self.gradient:
+            log.warning("fp16: the bands that scatter model.field_gradient stay float32 (their sums cancel below float16's "
+                        "precision beside a highlight); export with field_gradient off for float16 bands")
         gain = None if m.fill_gain is None else float(m.far_light_gain().detach())
         share = None if m.surface_fill is None else float(m.surface_fill_share().detach())
         return build_lens_graph(band_kernels, self.plan, m.config, m.contract, fp16, opset, props, self.scales,

@@ -31,7 +31,7 @@ SILHOUETTE_PX = 1
 # what a checkpoint written before a key existed meant by leaving it out, where the default has
 # changed since: its network is rebuilt as it was trained
 LEGACY_DEFAULTS = {"near_focus_px": 0.0, "pixel_blur": False, "surface_fill": False, "occlusion_margin_learned": False,
-                   "field_flow": False}
+                   "field_flow": False, "field_gradient": False}
 KERNEL_SIZES = ("growing", "fixed3")
 TILINGS = ("overlap", "none", "no_overlap")
 HEADS = ("identity", "paper")
@@ -115,15 +115,16 @@ class ModelConfig:
             and more on small frames. Band ``n``'s features are sampled at ``p - f(p)``, ``f =
             d_n / 2 x (mu(p) - mu(tile))`` (the channels' mean centroid, in aperture radii) before
             the scatter, which with the drift's colour gain (its Jacobian) moves the light as
-            the per-pixel pupil would, to first order. Skipped where the pupils do not vary.
+            the per-pixel pupil would, to first order. Skipped where the pupils do not vary. Off
+            by default (``field_gradient`` replaces it); set ``field_gradient`` false with it.
         field_gradient: give each source pixel the first-order change of its tile's kernels
             across the tile (lens): band ``n`` also scatters (colour x gate, gate) x the pixel's
             offset from the tile's centre (px, x and y) by the kernels' derivative in the sensor
             position. Across a tile the cat-eye's circle moves over the pupil, which changes a
             kernel's shape, not only where it lands; the derivative holds both, so it replaces
-            ``field_flow`` (set that false), whose bilinear warp also smears what it moves. Three
-            scatters per band instead of one (one grouped convolution of three feature groups
-            in the export); skipped where the pupils do not vary.
+            ``field_flow``, whose bilinear warp also smears what it moves. Three scatters per
+            band instead of one (one grouped convolution of three feature groups in the
+            export); skipped where the pupils do not vary. On by default.
         (``features``, ``head`` and the FFT thresholds: paper only; ``pupil_*``,
         ``field_grid``, ``vignetting``, ``occlusion_margin*``, ``fill``, ``surface_fill``,
         ``band_blend``, ``near_focus_px``, ``pixel_blur*``, ``field_flow``, ``field_gradient``: lens only; the rest: both.)
@@ -152,8 +153,8 @@ class ModelConfig:
     near_focus_px: float = 4.0
     pixel_blur: bool = False
     pixel_blur_px2: float = 0.0
-    field_flow: bool = True
-    field_gradient: bool = False
+    field_flow: bool = False
+    field_gradient: bool = True
 
     def __post_init__(self) -> None:
         for name in ("features", "tile", "fft_min_kernel", "fft_min_kernel_train"):
@@ -182,8 +183,9 @@ class ModelConfig:
         if not isinstance(self.field_gradient, bool):
             raise ValueError(f"model.field_gradient must be true or false, got {self.field_gradient!r}")
         if self.field_gradient and self.field_flow:
-            raise ValueError("model.field_gradient moves each pixel's blur with its kernel's change, which model.field_flow would "
-                             "move again: set model.field_flow = false")
+            raise ValueError("model.field_flow and model.field_gradient are both true: the gradient (the default) already gives "
+                             "each pixel its own pupil's blur, which the flow would move again; set model.field_gradient = false "
+                             "to use the flow, or model.field_flow = false")
         if not isinstance(self.pixel_blur, bool):
             raise ValueError(f"model.pixel_blur must be true or false, got {self.pixel_blur!r}")
         v = self.pixel_blur_px2
