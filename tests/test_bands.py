@@ -130,7 +130,7 @@ def test_the_file_carries_the_plate_plan_and_the_runtime_plans_with_it(busy_chec
     coc = g.uniform(-1.0, 1.0, (1, m.height, m.width)) * want.c_plan_px / 3  # a third of the range,
     coc[..., : m.width // 2] = 0.0  # and the left half in focus
     flags = active_bands(coc, want, m.layout)
-    # the network's own gates on what each tile scatters: its windows (the frame's mirror in their
+    # the network's own gates on what each tile scatters: its windows (edge copies in their
     # padding) under its source mask
     win, layout = m.layout.window, m.layout
     gates = band_gates(torch.from_numpy(coc).float(), want.c_plan_px, want.blocks)  # (1, H, W, N + 1)
