@@ -204,6 +204,26 @@ def test_flux_preserved_away_from_borders():
     assert auto_field_grid(ApertureModel(Polygon(7), cat_eye=0.6), 21.0, 64, 64) > 5
 
 
+@pytest.mark.parametrize("coc", [9.0, -9.0])
+def test_a_point_on_the_frame_edge_blurs_as_if_black_lay_beyond(coc):
+    """Beyond the frame a layer repeats its edge ring, whose 1 px peaks along the edge are clipped
+    (``scatter._pad``): points of 1000 on black on the edges, in a corner and 1 px inside them
+    blur as the same points with black beyond the frame (a larger canvas, cropped), to 1e-9 of
+    their light: each point's ring pixel drops to its black neighbours'. The mirror this replaced
+    doubled the points 1 px inside the edge (1.59x their light), a plain copy laid those on the
+    edge out as streaks (2.5-6.3x)."""
+    s, m = 48, 12
+    points = [(24, 0), (0, 24), (47, 24), (24, 47), (47, 47), (1, 12), (12, 46)]
+    aperture = ApertureModel(Polygon(7))
+    frame, big = torch.zeros(1, 3, s, s, dtype=torch.float64), torch.zeros(1, 3, s + 2 * m, s + 2 * m, dtype=torch.float64)
+    for r, c in points:
+        frame[..., r, c] = big[..., r + m, c + m] = 1000.0
+    out = scatter_defocus(frame, torch.full((1, 1, s, s), coc, dtype=torch.float64), aperture)
+    ref = scatter_defocus(big, torch.full((1, 1, s + 2 * m, s + 2 * m), coc, dtype=torch.float64), aperture)[..., m:-m, m:-m]
+    assert float(ref.sum()) > 1000.0  # their light lands in the frame
+    assert float((out - ref).abs().sum()) < 1e-9 * 1000.0 * 3 * len(points)
+
+
 # --- the HDR point -----------------------------------------------------------------------------
 
 

@@ -5,7 +5,8 @@ Used by the networks (``neuralbokeh.ops.tiles`` cuts tensors with it), the ONNX 
 which tiles and bands to run). An image of ``H x W`` px is padded at the bottom/right by edge
 replication to ``rows * core x cols * core``, then by ``overlap`` px all round; tile ``k = i *
 cols + j`` owns the core ``[i core, (i + 1) core) x [j core, (j + 1) core)`` of the image and
-sees the window of ``core + 2 overlap`` px around it.
+sees the window of ``core + 2 overlap`` px around it. The lens network's light repeats its edge
+pixels through :meth:`TileLayout.ring_indices` (``neuralbokeh.ops.tiles.edge_ring``).
 """
 
 from __future__ import annotations
@@ -51,6 +52,14 @@ class TileLayout(NamedTuple):
         """``(top, bottom, left, right)`` edge padding of an ``height x width`` image to the canvas."""
         hp, wp = self.padded_size
         return self.overlap, hp - self.overlap - height, self.overlap, wp - self.overlap - width
+
+    def ring_indices(self, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+        """``(H_p,)`` and ``(W_p,)`` int64: the row and column of the frame with a 1 px ring around it
+        (``(H + 2) x (W + 2)``, :func:`neuralbokeh.ops.tiles.edge_ring`) that each canvas row and
+        column shows: the frame inside, the ring's row or column beyond each edge."""
+        top, bottom, left, right = self.pads(height, width)
+        return (np.clip(np.arange(-top, height + bottom), -1, height) + 1,
+                np.clip(np.arange(-left, width + right), -1, width) + 1)
 
     def origins(self) -> list[tuple[int, int, int]]:
         """``(k, row, col)``: each tile's window's top-left corner on the padded canvas."""

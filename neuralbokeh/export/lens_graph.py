@@ -251,13 +251,40 @@ def window_max(g: Nodes, x: str, r: int, axis: int, size: int, pads: tuple[int, 
     return cur
 
 
-def _cut(g: Nodes, source: str, window: tuple[str, str, str | None]) -> str:
+def _cut(g: Nodes, source: str, window: tuple[str, str, str | None, tuple[str, str, str] | None], light: bool = False) -> str:
     """A tile's window of ``source`` ``(B, C, H, W)``: ``window`` = (its first and its end row and
     column in the frame, clipped to it; the edge padding ``Pad`` adds where the window leaves the
-    frame, or None), as a cut of the frame edge-padded once, without padding all of it."""
-    starts, ends, edge = window
+    frame, or None; (the frame's :func:`edge_ring` ``(B, 3, H + 2, W + 2)``, the ring's rows and
+    columns the window shows, :meth:`TileLayout.ring_indices`) where it leaves the frame), as a
+    cut of the frame edge-padded once, without padding all of it. ``light``: ``source`` is the
+    colour, whose padding repeats the ring (a 1 px peak on the edge is not repeated)."""
+    starts, ends, edge, ring = window
+    if edge is not None and light:
+        return g.op("Gather", g.op("Gather", ring[0], ring[1], axis=2), ring[2], axis=3)
     out = g.op("Slice", source, starts, ends, g.c("axes_hw", [2, 3], np.int64))
     return out if edge is None else g.op("Pad", out, edge, mode="edge")
+
+
+def edge_ring(g: Nodes, source: str, h: int, w: int) -> str:
+    """:func:`neuralbokeh.ops.tiles.edge_ring` of the colour ``source`` ``(B, 3, H, W)``, op for op:
+    ``(B, 3, H + 2, W + 2)`` of an ``h x w`` frame, the frame in a 1 px ring of its edge pixels,
+    each clipped to the larger of its two neighbours along the edge; a corner repeats the end of its row's."""
+    def cut(v: str, start: int, end: int, axis: int) -> str:
+        return g.op("Slice", v, g.c(f"ring.s{start}", [start], np.int64), g.c(f"ring.e{end}", [end], np.int64),
+                    g.c(f"ring.ax{axis}", [axis], np.int64))
+
+    def clipped(v: str, axis: int, n: int) -> str:  # ops.tiles.clip_peaks along ``axis`` (n values)
+        if n < 2:
+            return v
+        before = g.op("Concat", cut(v, 1, 2, axis), cut(v, 0, -1, axis), axis=axis)  # the reflect-padded neighbours
+        after = g.op("Concat", cut(v, 1, big, axis), cut(v, -2, -1, axis), axis=axis)
+        return g.op("Min", v, g.op("Max", before, after))
+
+    big = 2**62
+    top, bottom = (clipped(cut(source, a, b, 2), 3, w) for a, b in ((0, 1), (-1, big)))  # (B, 3, 1, W)
+    top, bottom = (g.op("Concat", cut(r, 0, 1, 3), r, cut(r, -1, big, 3), axis=3) for r in (top, bottom))
+    left, right = (clipped(cut(source, a, b, 3), 2, h) for a, b in ((0, 1), (-1, big)))  # (B, 3, H, 1)
+    return g.op("Concat", top, g.op("Concat", left, source, right, axis=3), bottom, axis=2)
 
 
 def _pull(g: Nodes, image: str, weight: str, pads: list[int], premultiplied: bool = False) -> tuple[str, str]:
@@ -415,7 +442,7 @@ def _band(b: GraphBuilder, k: int, n: int, side: int, pos: str, side_mask: str, 
     return _branch(g, g.op("Mul", weights, g.op("Unsqueeze", out, g.c("ax02", [0, 2], np.int64))), f"t{k}_band{n}_{side}")
 
 
-def _tile(b: GraphBuilder, k: int, cut: tuple[str, str, str | None], kernels: Mapping[int, np.ndarray],
+def _tile(b: GraphBuilder, k: int, cut: tuple[str, str, str | None, tuple[str, str, str] | None], kernels: Mapping[int, np.ndarray],
           flow: tuple[str, Mapping[int, np.ndarray]] | None,
           scales: Mapping[int, int], src: np.ndarray, cfg: ModelConfig, contract: Contract, plan: BandPlan, fp16: bool,
           rows: bool, margins: Mapping[int, float], slopes: Mapping[int, np.ndarray] | None = None,
@@ -438,7 +465,7 @@ def _tile(b: GraphBuilder, k: int, cut: tuple[str, str, str | None], kernels: Ma
     g = Nodes(GraphBuilder(b.count), f"t{k}")
     blocks, diameters = plan.blocks, plan.diameters
     win = src.shape[-1]
-    rgb = _decode(g, _cut(g, "aif", cut), contract.normalization)
+    rgb = _decode(g, _cut(g, "aif", cut, light=True), contract.normalization)
     coc_in = _cut(g, "coc", cut)
     one = g.c("one", 1.0)
     c = g.op("Mul", coc_in, g.c("coc_scale_px", float(contract.coc_scale_px)))
@@ -767,6 +794,8 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: Mod
         full = top.op("MatMul", at_rows, b.const("centroid_cols_t", np.transpose(cols_w)))  # (4, H, W)
         centroid_map = top.op("Unsqueeze", full, b.const("ax0", [0], np.int64))
     corners = window_offsets_px(layout, h, w)
+    ring = edge_ring(top, "aif", h, w) if any(layout.pads(h, w)) else None
+    ring_rows, ring_cols = layout.ring_indices(h, w)
     placed = []
     for k, r, c in layout.origins():
         y0, x0 = r - pad_t, c - pad_l  # the window in frame px; the edge pads it where it leaves the frame
@@ -774,7 +803,9 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: Mod
         edge = [0, 0, top_e, left_e, 0, 0, bottom_e, right_e]
         cut = (b.const(f"t{k}.starts", [y0 + top_e, x0 + left_e], np.int64),
                b.const(f"t{k}.ends", [y0 + win - bottom_e, x0 + win - right_e], np.int64),
-               b.const(f"t{k}.edge", edge, np.int64) if any(edge) else None)
+               b.const(f"t{k}.edge", edge, np.int64) if any(edge) else None,
+               (ring, b.const(f"t{k}.ring_rows", ring_rows[r : r + win], np.int64),
+                b.const(f"t{k}.ring_cols", ring_cols[c : c + win], np.int64)) if any(edge) else None)
         cond = top.op("Gather", "tile_active", b.const(f"t{k}.index", k, np.int64))
         tile_kernels = {n: kernels[n][k] for n in kernels}
         tile_flow = None if drift is None else (drift, flow[1])

@@ -807,7 +807,7 @@ class LensBokeh(nn.Module):
         n_t = layout.num_tiles
         plan = self.plan(self.frame_coc(x, plan_coc_px))
         blocks, diameters = plan.blocks, plan.diameters
-        xt = tile(x, layout)
+        xt = tile(x, layout, light=3)  # a point source on the frame's edge is not repeated into the padding
         win = xt.shape[-1]
         xt = xt.view(b, n_t, 4, win, win)
         rgb = self.contract.normalization.decode(xt[:, :, :3])  # linear light

@@ -12,15 +12,44 @@ import torch.nn.functional as F
 from ..core.tiling import TileLayout
 
 
-def tile(x: torch.Tensor, layout: TileLayout) -> torch.Tensor:
+def clip_peaks(line: torch.Tensor) -> torch.Tensor:
+    """``(B, C, n)``: each value at most the larger of its two neighbours along the last dim (an
+    end's one neighbour counts twice; ``n = 1`` is kept): a 1 px peak drops to its neighbours'."""
+    if line.shape[-1] < 2:
+        return line
+    padded = F.pad(line, (1, 1), mode="reflect")
+    return torch.minimum(line, torch.maximum(padded[..., :-2], padded[..., 2:]))
+
+
+def edge_ring(x: torch.Tensor, light: int = 0) -> torch.Tensor:
+    """``(B, C, H, W)`` -> ``(B, C, H + 2, W + 2)``: the frame with a 1 px ring of its edge pixels
+    around it, what the tiles' padding repeats. In the first ``light`` channels (colour, in any
+    encoding that keeps order) each ring pixel is its edge pixel clipped to the larger of its two
+    neighbours along the edge (:func:`clip_peaks`; a corner of the ring repeats the end of its
+    row's): beyond the frame an extended surface goes on, a point source cut by the frame's edge
+    does not, and repeating it would lay a streak of light as wide as the padding."""
+    ring = F.pad(x, (1, 1, 1, 1), mode="replicate")  # a fresh tensor: written in place, under autograd too
+    if light:
+        ring[:, :light, 0] = F.pad(clip_peaks(x[:, :light, 0]), (1, 1), mode="replicate")
+        ring[:, :light, -1] = F.pad(clip_peaks(x[:, :light, -1]), (1, 1), mode="replicate")
+        ring[:, :light, 1:-1, 0] = clip_peaks(x[:, :light, :, 0])
+        ring[:, :light, 1:-1, -1] = clip_peaks(x[:, :light, :, -1])
+    return ring
+
+
+def tile(x: torch.Tensor, layout: TileLayout, light: int = 0) -> torch.Tensor:
     """Cut ``(B, C, H, W)`` into overlapping windows, concatenated along channels.
 
     Returns ``(B, tiles * C, window, window)``, tile-major (tile k owns channels ``k*C .. k*C +
-    C - 1``), padded by edge replication as :meth:`TileLayout.pads` says.
+    C - 1``), padded as :meth:`TileLayout.pads` says by repeating the edge pixels; the first
+    ``light`` channels repeat the ring of :func:`edge_ring` (a 1 px peak on the edge is not repeated).
     """
     h, w = x.shape[-2:]
     top, bottom, left, right = layout.pads(h, w)
-    if top or bottom or left or right:
+    if light and (top or bottom or left or right):
+        rows, cols = (torch.from_numpy(i).to(x.device) for i in layout.ring_indices(h, w))
+        x = edge_ring(x, light).index_select(-2, rows).index_select(-1, cols)
+    elif top or bottom or left or right:
         x = F.pad(x, (left, right, top, bottom), mode="replicate")
     win = layout.window
     # one unfold (its backward is one fold) instead of a slice per tile, whose backward would

@@ -15,16 +15,33 @@ import numpy as np
 from ..core.apertures import ApertureModel, field_position
 
 
-def _mirror(i: int, n: int, p: int) -> int:
-    """Source index of padded position ``i`` (reflect, or edge for tiny images), as in the fast path."""
-    j = i - p
-    if p < n:  # reflect without repeating the edge
-        if j < 0:
-            return -j
-        if j >= n:
-            return 2 * (n - 1) - j
-        return j
-    return min(max(j, 0), n - 1)
+def _edge_ring(image: np.ndarray) -> np.ndarray:
+    """``(C, H, W)`` -> ``(C, H + 2, W + 2)``: the image in a 1 px ring of its edge pixels, each
+    at most the larger of its neighbours along the edge; a corner repeats its row's end. What the
+    padding beyond the frame repeats, as in the fast path."""
+    c, h, w = image.shape
+    ring = np.zeros((c, h + 2, w + 2))
+    ring[:, 1:-1, 1:-1] = image
+
+    def clipped(line: np.ndarray) -> np.ndarray:  # (C, n)
+        out = line.copy()
+        for i in range(line.shape[1]):
+            beside = [line[:, j] for j in (i - 1, i + 1) if 0 <= j < line.shape[1]]
+            if beside:
+                out[:, i] = np.minimum(line[:, i], np.max(beside, axis=0))
+        return out
+
+    ring[:, 0, 1:-1], ring[:, -1, 1:-1] = clipped(image[:, 0]), clipped(image[:, -1])
+    ring[:, 1:-1, 0], ring[:, 1:-1, -1] = clipped(image[:, :, 0]), clipped(image[:, :, -1])
+    for row in (0, -1):
+        ring[:, row, 0], ring[:, row, -1] = ring[:, row, 1], ring[:, row, -2]
+    return ring
+
+
+def _ring_index(i: int, n: int, p: int) -> int:
+    """Row (or column) of the edge ring ``(n + 2)`` that padded position ``i`` shows: the frame
+    inside, the ring beyond it however far."""
+    return min(max(i - p, -1), n) + 1
 
 
 def reference_scatter_layers(
@@ -77,25 +94,27 @@ def reference_scatter_layers(
 def _scatter_layer(color: np.ndarray, alpha: np.ndarray, c: float, aperture: ApertureModel, pad: int,
                    preserve_uniform: bool) -> tuple[np.ndarray, np.ndarray]:
     """One layer (``color`` ``(3, H, W)``, ``alpha`` ``(H, W)``) scattered pixel by pixel with the
-    PSF at CoC ``c`` px and each pixel's field position, the image mirrored ``pad`` px beyond its
-    edges: ``(colour (3, H, W), coverage (1 or 3, H, W))``."""
+    PSF at CoC ``c`` px and each pixel's field position, its edge ring repeated ``pad`` px beyond
+    its edges (a padding pixel at its edge pixel's position): ``(colour (3, H, W), coverage (1 or
+    3, H, W))``."""
     h, w = alpha.shape
+    ring = _edge_ring(np.concatenate([color, alpha[None]]))
     n_a = 3 if aperture.chromatic else 1
     n_u = n_a if aperture.spatially_varying else 0  # uniform-field response channels
     rad = aperture.kernel_radius_px(abs(c))
     m = pad + rad  # the canvas covers the padded image plus one kernel radius on every side
     canvas = np.zeros((3 + n_a + n_u, h + 2 * m, w + 2 * m))
     for py in range(h + 2 * pad):
-        sy = _mirror(py, h, pad)
+        ry = _ring_index(py, h, pad)
         for px in range(w + 2 * pad):
-            sx = _mirror(px, w, pad)
-            a = alpha[sy, sx]
+            rx = _ring_index(px, w, pad)
+            a = ring[3, ry, rx]
             if a == 0 and n_u == 0:
                 continue
-            k = aperture.psf(c, field_position(sy, sx, h, w))
+            k = aperture.psf(c, field_position(min(max(ry - 1, 0), h - 1), min(max(rx - 1, 0), w - 1), h, w))
             r = k.shape[-1] // 2
             # colour, coverage, and a uniform unit field (every pixel scatters 1)
-            value = np.concatenate([color[:, sy, sx], np.full(n_a, a), np.ones(n_u)])
+            value = np.concatenate([ring[:3, ry, rx], np.full(n_a, a), np.ones(n_u)])
             kk = np.concatenate([k, k if n_a == 3 else k[1:2]] + ([k if n_u == 3 else k[1:2]] if n_u else []), 0)
             y0, x0 = py + (m - pad) - r, px + (m - pad) - r
             canvas[:, y0 : y0 + 2 * r + 1, x0 : x0 + 2 * r + 1] += kk * value[:, None, None]

@@ -10,7 +10,8 @@ are composited back to front with "over"::
 
 For a scene that *is* such a stack (:func:`scatter_layers`, e.g. the synthetic generator, which
 knows every layer in full) this is exact. Each layer's scatter conserves flux (kernels sum to
-1; borders are reflect-padded, so a uniform plane stays uniform).
+1; beyond the frame a layer repeats its edge ring, :func:`_pad`, so a uniform plane stays
+uniform and a point source on the frame's edge is not laid out as a streak).
 
 What it approximates for an all-in-focus image plus a depth map (:func:`render_defocus`,
 :func:`scatter_defocus`), i.e. non-layered scenes:
@@ -75,6 +76,7 @@ from ..core.checks import check_finite, check_in_range, check_nonnegative, check
 from ..core.optics import ThinLens
 from ..ops.fftconv import fft_convolve2d
 from ..ops.holes import hidden_background
+from ..ops.tiles import edge_ring
 
 log = logging.getLogger(__name__)
 
@@ -96,18 +98,20 @@ def _tent_weights(size: int, nodes: np.ndarray) -> np.ndarray:
     return np.clip(1.0 - np.abs(x[None, :] - nodes[:, None]) / spacing, 0.0, None)
 
 
-def _pad_mode(h: int, w: int, p: int) -> str:
-    return "reflect" if p < min(h, w) else "replicate"
+def _pad(x: torch.Tensor, p: int) -> torch.Tensor:
+    """``(C, H, W)`` padded by ``p`` px all round with its edge ring repeated
+    (:func:`~neuralbokeh.ops.tiles.edge_ring`, every channel's 1 px peaks along the edge clipped),
+    as the lens network's tiles pad their colour: an extended surface goes on beyond the frame, a
+    point source cut by the frame's edge does not. Against Mitsuba's renders, which see the scene
+    beyond the frame, it measured ahead of a mirror (``docs/benchmarks.md``, "The edge ring")."""
+    if p == 0:
+        return x
+    return F.pad(edge_ring(x[None], light=x.shape[0]), (p - 1,) * 4, mode="replicate")[0]
 
 
-def _pad(x: torch.Tensor, p: int, mode: str) -> torch.Tensor:
-    """Pad the last two dims (reflect; replicate when the image is smaller than the pad)."""
-    return x if p == 0 else F.pad(x, (p, p, p, p), mode=mode)
-
-
-def _pad_1d(weights: torch.Tensor, p: int, mode: str) -> torch.Tensor:
-    """Pad (G, size) weights along size the same way the image is padded (separable)."""
-    return weights if p == 0 else F.pad(weights[None], (p, p), mode=mode)[0]
+def _pad_1d(weights: torch.Tensor, p: int) -> torch.Tensor:
+    """Pad (G, size) weights along size as the image is padded: a padding pixel takes its edge pixel's."""
+    return weights if p == 0 else F.pad(weights[None], (p, p), mode="replicate")[0]
 
 
 def auto_field_grid(aperture: ApertureModel, max_coc_px: float, height: int, width: int, max_shift_px: float = 0.5) -> int:
@@ -154,15 +158,14 @@ def _scatter_layer(
 ) -> tuple[torch.Tensor, int]:
     """Scatter one layer's ``src = [C (3), A (n_a)]`` (H, W); returns ``[C', A']`` and #convolutions.
 
-    The layer is reflect-padded by ``pad``; with a kernel grid each node convolves only its own
-    tent support (a crop), and the full convolution of the crop is added onto a canvas.
+    The layer is padded by ``pad`` (:func:`_pad`); with a kernel grid each node convolves only its
+    own tent support (a crop), and the full convolution of the crop is added onto a canvas.
     """
     _, h, w = src.shape
-    mode = _pad_mode(h, w, pad)
     rows, cols = _node_positions(h, grid), _node_positions(w, grid)
-    wr = _pad_1d(torch.as_tensor(_tent_weights(h, rows), dtype=src.dtype, device=src.device), pad, mode)
-    wc = _pad_1d(torch.as_tensor(_tent_weights(w, cols), dtype=src.dtype, device=src.device), pad, mode)
-    padded = _pad(src, pad, mode)
+    wr = _pad_1d(torch.as_tensor(_tent_weights(h, rows), dtype=src.dtype, device=src.device), pad)
+    wc = _pad_1d(torch.as_tensor(_tent_weights(w, cols), dtype=src.dtype, device=src.device), pad)
+    padded = _pad(src, pad)
     ones = torch.ones((n_u,) + padded.shape[1:], dtype=src.dtype, device=src.device)
     nodes: list[tuple[torch.Tensor, tuple[float, float], int, int]] = []
     for a in range(grid):
