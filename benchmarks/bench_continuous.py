@@ -45,7 +45,7 @@ from __future__ import annotations
 
 import argparse
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -86,7 +86,7 @@ FILL_PARAMETERS = ("fill_gain", "surface_fill", "margin_scale")
 
 
 def network_rows(aperture: ApertureModel, lens: ThinLens, size: tuple[int, int], max_coc_px: float,
-                 variants: list[str], fill_from: list[Path] = ()) -> dict:
+                 variants: list[str], fill_from: Sequence[Path] = ()) -> dict:
     """The lens network, untrained, given the scene's own lens (``pupil_init = "aperture"``, no
     cat-eye: Mitsuba's thin lens has none), with the hidden-background fill and with the
     far-light fill at its starting gain (1): what each fill rule does where a blurred foreground
