@@ -18,9 +18,10 @@ depth once), then feeds the AIF + CoC to identity, the CoC Gaussian, the naive g
 scatter with the true aperture, and prints linear / sRGB PSNR and seconds. ``--network`` adds
 the lens network, untrained, given the scene's own lens, with the hidden-background fill and the
 far-light fill (at its starting gain); ``--network-options K=V[,K=V] ...`` adds a row per spec
-with those ``ModelConfig`` fields changed; ``--fill-from CKPT ...`` a row per trained network with the
-fill it learned. ``--save DIR`` keeps the AIF, the depth and the truths;
-``--load DIR`` scores against them without Mitsuba (seconds instead of minutes).
+with those ``ModelConfig`` fields changed; ``--fill-from CKPT ...`` a row per trained network with
+the fill it learned, and one with its occlusion-margin factor left at 1. ``--save DIR`` keeps the
+AIF, the depth and the truths; ``--load DIR`` scores against them without Mitsuba (seconds
+instead of minutes).
 
 Overscan (``--overscan M``, default 24 px, half the largest CoC): the truth, the AIF and the depth
 are rendered M px wider on every side (the same scene, camera and pixel pitch) and every method
@@ -94,7 +95,8 @@ def network_rows(aperture: ApertureModel, lens: ThinLens, size: tuple[int, int],
     ModelConfig fields, comma-separated) adds a row with the background fill and those fields.
     Each of ``fill_from`` (trained checkpoints) adds a row with that network's fill settings and
     the fill parameters it learned (far-light gain, surface-fill share, occlusion-margin factor),
-    the rest as the other rows: the learned fill on a scene and lens it was not trained on."""
+    the rest as the other rows: the learned fill on a scene and lens it was not trained on; and a
+    second row (", margin x1") with the margin factor left at its start."""
     from bench_options import parse_option
 
     from neuralbokeh.checkpoint import load_checkpoint
@@ -108,19 +110,24 @@ def network_rows(aperture: ApertureModel, lens: ThinLens, size: tuple[int, int],
     rows = {}
     configs = {f"network, fill {fill}": {"fill": fill} for fill in ("background", "far_light")}
     configs |= {f"network, {spec}": dict(parse_option(o) for o in spec.split(",")) for spec in variants}
-    learned = {}  # row -> (checkpoint, the fill parameters it learned)
+    learned = {}  # row -> (checkpoint, the fill parameters it learned, those left at their start)
     for path in fill_from:
         ck = load_checkpoint(path)
-        row = f"network, the fill {'/'.join(path.parent.parts[-2:])} learned"
-        learned[row] = path, {k: v for k, v in ck["model_state"].items() if k in FILL_PARAMETERS}
-        configs[row] = {k: ck["model_config"][k] for k in FILL_FIELDS}
+        run_name = "/".join(path.parent.parts[-2:])
+        state = {k: v for k, v in ck["model_state"].items() if k in FILL_PARAMETERS}
+        # the margin factor is how far apart in CoC one surface may be in the training data's
+        # depth: a second row keeps it at 1, to tell the fill's own parameters from it
+        row = f"network, the fill {run_name} learned"
+        for row, start in ((row, ()), (f"{row}, margin x1", ("margin_scale",))):
+            learned[row] = path, {k: v for k, v in state.items() if k not in start}, start
+            configs[row] = {k: ck["model_config"][k] for k in FILL_FIELDS}
     for name, options in configs.items():
         base = {"tile": 2 * overlap, "overlap": overlap, "pupil_init": "aperture", "vignetting": False}
         cfg = ModelConfig(**base | options).resolved(max_coc_px)
         model = build_model(cfg, contract)
         if name in learned:
-            path, state = learned[name]
-            missing = sorted(set(state) ^ {k for k in FILL_PARAMETERS if getattr(model, k) is not None})
+            path, state, start = learned[name]
+            missing = sorted(set(state) ^ {k for k in FILL_PARAMETERS if getattr(model, k) is not None and k not in start})
             if missing:
                 raise ValueError(f"--fill-from {path}: fill parameters {missing} are in only one of the checkpoint and its network")
             model.load_state_dict(state, strict=False)
@@ -149,7 +156,7 @@ def arguments() -> argparse.Namespace:
     p.add_argument("--network-options", nargs="*", default=[], metavar="K=V[,K=V]",
                    help="with --network: one more network row per spec, these ModelConfig fields changed")
     p.add_argument("--fill-from", type=Path, nargs="*", default=[], metavar="CKPT",
-                   help="with --network: one more row per trained checkpoint, with the fill it learned (gain, share, margin)")
+                   help="with --network: two more rows per trained checkpoint, with the fill it learned (gain, share, margin; margin x1)")
     p.add_argument("--variant", default=None)
     p.add_argument("--load", type=Path, default=None, help="a --save folder: its AIF, depth and truths instead of Mitsuba")
     p.add_argument("--save", type=Path, default=None, help="folder to write the AIF and the truths to (EXR)")
