@@ -95,8 +95,8 @@ def network_rows(aperture: ApertureModel, lens: ThinLens, size: tuple[int, int],
     ModelConfig fields, comma-separated) adds a row with the background fill and those fields.
     Each of ``fill_from`` (trained checkpoints) adds a row with that network's fill settings and
     the fill parameters it learned (far-light gain, surface-fill share, occlusion-margin factor),
-    the rest as the other rows: the learned fill on a scene and lens it was not trained on; and a
-    second row (", margin x1") with the margin factor left at its start."""
+    the rest as the other rows: the learned fill on a scene and lens it was not trained on; and,
+    where it learned a margin factor, a second row (", margin x1") with that factor at its start."""
     from bench_options import parse_option
 
     from neuralbokeh.checkpoint import load_checkpoint
@@ -115,10 +115,13 @@ def network_rows(aperture: ApertureModel, lens: ThinLens, size: tuple[int, int],
         ck = load_checkpoint(path)
         run_name = "/".join(path.parent.parts[-2:])
         state = {k: v for k, v in ck["model_state"].items() if k in FILL_PARAMETERS}
-        # the margin factor is how far apart in CoC one surface may be in the training data's
-        # depth: a second row keeps it at 1, to tell the fill's own parameters from it
-        row = f"network, the fill {run_name} learned"
-        for row, start in ((row, ()), (f"{row}, margin x1", ("margin_scale",))):
+        base_row = f"network, the fill {run_name} learned"
+        rows_of = {base_row: ()}
+        if "margin_scale" in state:
+            # the margin factor is how far apart in CoC one surface may be in the training data's
+            # depth: a second row keeps it at 1, to tell the fill's own parameters from it
+            rows_of[f"{base_row}, margin x1"] = ("margin_scale",)
+        for row, start in rows_of.items():
             learned[row] = path, {k: v for k, v in state.items() if k not in start}, start
             configs[row] = {k: ck["model_config"][k] for k in FILL_FIELDS}
     for name, options in configs.items():
