@@ -82,7 +82,8 @@ def methods(aperture: ApertureModel, steps: list[float], jumps: list[float]) -> 
 
 
 # what a trained network's fill is: its config fields and the parameters it learns
-FILL_FIELDS = ("fill", "surface_fill", "occlusion_margin_px", "occlusion_margin_rel", "occlusion_margin_learned")
+FILL_FIELDS = ("fill", "surface_fill", "occlusion_margin_px", "occlusion_margin_rel", "occlusion_margin_learned",
+               "occlusion_margin_step", "occlusion_margin_slope")
 FILL_PARAMETERS = ("fill_gain", "surface_fill", "margin_scale")
 
 
@@ -123,7 +124,8 @@ def network_rows(aperture: ApertureModel, lens: ThinLens, size: tuple[int, int],
             rows_of[f"{base_row}, margin x1"] = ("margin_scale",)
         for row, start in rows_of.items():
             learned[row] = path, {k: v for k, v in state.items() if k not in start}, start
-            configs[row] = {k: ck["model_config"][k] for k in FILL_FIELDS}
+            trained = ModelConfig.from_dict(ck["model_config"])  # a key the checkpoint predates: what it meant then
+            configs[row] = {k: getattr(trained, k) for k in FILL_FIELDS}
     for name, options in configs.items():
         base = {"tile": 2 * overlap, "overlap": overlap, "pupil_init": "aperture", "vignetting": False}
         cfg = ModelConfig(**base | options).resolved(max_coc_px)

@@ -488,19 +488,24 @@ def test_a_checkpoint_from_before_the_near_focus_lattice_keeps_its_uniform_bands
     assert np.abs(uniform - _run_onnx(busy_onnx, x[:, :3].numpy(), x[:, 3:].numpy())).max() > 1e-3
 
 
-@pytest.mark.parametrize("option", ["margin_rel", "margin_learned", "pixel_blur", "surface_fill"])
+@pytest.mark.parametrize("option", ["margin_rel", "margin_learned", "margin_step", "no_margin_slope", "pixel_blur", "surface_fill"])
 def test_a_margin_that_grows_with_the_band_and_a_pixel_blur_export_with_parity(busy_checkpoint, busy_onnx, tmp_path, option):
     """``occlusion_margin_rel``: each band's buckets ramp over ``max(margin_px, rel d_n)``, a
     constant of the band in the graph as in PyTorch; ``margin_learned``: so is the learned factor
-    on it. ``pixel_blur``: the kernels the graph holds
+    on it; ``margin_step``: a learned factor under the lattice's step, which floors it;
+    ``no_margin_slope``: the default's margin from each receiver's CoC slope (made in the graph
+    from the CoC input; the calibration inputs' CoC is a smooth field), left out. ``pixel_blur``: the kernels the graph holds
     are the module's, blurred. ``surface_fill``: its learned share, a constant of the graph.
     Each changes the output."""
     data = load_checkpoint(busy_checkpoint)
     if option == "margin_rel":
         data["model_config"] = {**data["model_config"], "occlusion_margin_rel": 0.5}
-    elif option == "margin_learned":
+    elif option == "no_margin_slope":
+        assert data["model_config"]["occlusion_margin_slope"]  # the default
+        data["model_config"] = {**data["model_config"], "occlusion_margin_slope": False}
+    elif option in ("margin_learned", "margin_step"):
         assert data["model_config"]["occlusion_margin_learned"] and "margin_scale" in data["model_state"]  # the default
-        data["model_state"] = {**data["model_state"], "margin_scale": torch.tensor([math.log(0.5)])}
+        data["model_state"] = {**data["model_state"], "margin_scale": torch.tensor([math.log(0.5 if option == "margin_learned" else 0.1)])}
     elif option == "surface_fill":
         assert data["model_config"]["surface_fill"] and "surface_fill" in data["model_state"]  # the default
         data["model_state"] = {**data["model_state"], "surface_fill": torch.tensor([math.log(0.3 / 0.7)])}
@@ -515,6 +520,12 @@ def test_a_margin_that_grows_with_the_band_and_a_pixel_blur_export_with_parity(b
         assert model.config.occlusion_margin(d[1]) == 2.0 and model.config.occlusion_margin(d[-1]) == pytest.approx(0.5 * d[-1])
     elif option == "margin_learned":
         assert float(model.occlusion_margin(float(d[1])).detach()) == pytest.approx(1.0)
+    elif option == "margin_step":
+        plan = model.plan(model.contract.max_coc_px)
+        assert float(model.occlusion_margin(float(d[1]), plan.band_step_px(1)).detach()) == pytest.approx(plan.band_step_px(1))
+        assert plan.band_step_px(1) > 0.2 * 1.01  # the factor's 0.2 px is floored
+    elif option == "no_margin_slope":
+        assert not model.config.occlusion_margin_slope
     elif option == "surface_fill":
         assert float(model.surface_fill_share().detach()) == pytest.approx(0.3)
     else:

@@ -11,7 +11,16 @@ from neuralbokeh.core.bands import band_diameters
 from neuralbokeh.core.contract import Contract
 from neuralbokeh.core.normalization import Normalization
 from neuralbokeh.networks import ModelConfig, build_model
-from neuralbokeh.networks.lens import PUPIL_EXTENT, band_gates, band_scales, bucket_weights, far_light_fill, field_weights, reduce_kernel
+from neuralbokeh.networks.lens import (
+    PUPIL_EXTENT,
+    band_gates,
+    band_scales,
+    bucket_weights,
+    coc_slope,
+    far_light_fill,
+    field_weights,
+    reduce_kernel,
+)
 from neuralbokeh.render import scatter_defocus, scatter_layers
 from neuralbokeh.render.reference import reference_scatter_layers
 
@@ -487,14 +496,16 @@ def test_the_occlusion_margin_learns_the_datas(truth_px):
     # a textured surface sloping from 3 to 11 px of CoC: light of each band reaches receivers
     # whose CoC differs by 0-5 px, so how it is sorted into near / same / far depends on the
     # margin. Rendered by the same network with a fixed margin, the learned one (2 px at the
-    # start) moves towards it
+    # start) moves towards it. The factor alone: no floor at the lattice's step (2 px here) or
+    # at the surface's slope
+    alone = {"occlusion_margin_step": False, "occlusion_margin_slope": False}
     g = torch.Generator().manual_seed(3)
     img = 0.05 + torch.rand(1, 3, 48, 48, generator=g, dtype=torch.float64)
     coc = torch.linspace(3.0, 11.0, 48, dtype=torch.float64).expand(1, 1, 48, 48).contiguous()
     x = torch.cat([NORM.encode(img), coc / C_MAX], 1).float()
     with torch.no_grad():
-        y = _model(occlusion_margin_learned=False, occlusion_margin_px=truth_px)(x)
-    m = _model().train()
+        y = _model(occlusion_margin_learned=False, occlusion_margin_px=truth_px, **alone)(x)
+    m = _model(**alone).train()
     assert float(m.occlusion_margin(5.0).detach()) == pytest.approx(2.0)
     opt = torch.optim.Adam([m.margin_scale], lr=0.1)
     for _ in range(15):
@@ -505,6 +516,40 @@ def test_the_occlusion_margin_learns_the_datas(truth_px):
     got = float(m.occlusion_margin(5.0).detach())
     assert (got < 1.5) if truth_px < 2 else (got > 2.7), got  # measured: 0.86 and 3.25 px in 15 steps
     assert _model(occlusion_margin_learned=False).margin_scale is None
+
+
+@pytest.mark.parametrize("jump", [10.0, -10.0])
+def test_the_coc_slope_reads_a_sloped_surface_and_not_a_depth_edge(jump):
+    """A plane sloping 0.5 px of CoC per px across and 0.25 down, cut by an edge at column 6: the
+    slope everywhere inside; beside the edge the slope where the jump goes the slope's way, else
+    the across part is 0 (never the jump); 0 across on the frame's outer columns and down on its
+    outer rows, which have one difference only."""
+    y, x = torch.meshgrid(torch.arange(10.0), torch.arange(12.0), indexing="ij")
+    coc = 0.5 * x + 0.25 * y + jump * (x >= 6)
+    s = coc_slope(coc[None, None])[0, 0]
+    beside = (x[1:-1, 1:-1] == 5) | (x[1:-1, 1:-1] == 6)
+    inner = s[1:-1, 1:-1]
+    want = torch.where(beside & (jump < 0), torch.tensor(0.25), torch.tensor(math.hypot(0.5, 0.25)))
+    assert torch.allclose(inner, want)
+    top = torch.where(beside[0] & (jump < 0), torch.tensor(0.0), torch.tensor(0.5))
+    assert torch.allclose(s[0, 1:-1], top) and torch.allclose(s[1:-1, 0], torch.full((8,), 0.25))
+    assert float(s[0, 0]) == 0.0
+    central = (coc[1:-1, 2:] - coc[1:-1, :-2]) / 2  # what a central difference reads beside the edge: half the jump
+    assert float(central[:, 4].abs().min()) > 4.0
+
+
+def test_the_slope_margin_leaves_planes_facing_the_camera_as_they_were():
+    """Where every surface faces the camera (a CoC constant on each), ``occlusion_margin_slope``
+    changes nothing; on a sloped one it moves the light between the buckets."""
+    g = torch.Generator().manual_seed(5)
+    img = 0.05 + torch.rand(1, 3, 48, 48, generator=g, dtype=torch.float64)
+    planes = torch.full((1, 1, 48, 48), -9.0, dtype=torch.float64)
+    planes[..., 12:36, 10:30] = 4.0
+    planes[..., 30:, 20:] = 12.0
+    ramp = torch.linspace(-13.0, 13.0, 48, dtype=torch.float64).expand(1, 1, 48, 48).contiguous()
+    off, on = _model(occlusion_margin_px=1.0, occlusion_margin_slope=False), _model(occlusion_margin_px=1.0)
+    assert torch.equal(_run(off, img, planes), _run(on, img, planes))
+    assert float((_run(off, img, ramp) - _run(on, img, ramp)).abs().max()) > 1e-4
 
 
 def test_the_far_light_fill_takes_the_far_mean_up_to_its_gain_and_never_spreads_a_highlight():

@@ -374,7 +374,7 @@ class _LensExport:
             band_kernels = {n: reduce_kernel(m.kernels(n, pupils, float(d[n])).double(), self.scales[n]).numpy()
                             for n in range(1, m.config.blocks + 1)}
             slopes = {n: m.gain_slopes(float(d[n])).double().numpy() for n in range(1, m.config.blocks + 1)}
-            margins = {n: float(m.occlusion_margin(float(d[n]))) for n in range(1, m.config.blocks + 1)}
+            margins = {n: float(m.occlusion_margin(float(d[n]), self.plan.band_step_px(n))) for n in range(1, m.config.blocks + 1)}
             kernel_slopes = None if m.config.band_blend != "hermite" else {
                 n: reduce_kernel(m.kernel_slopes(n, pupils, float(d[n]), self.plan.band_step_px(n)).double(), self.scales[n]).numpy()
                 for n in range(1, m.config.blocks + 1)}

@@ -355,7 +355,7 @@ def _pixel_centres(win: int) -> np.ndarray:
 def _band(b: GraphBuilder, k: int, n: int, side: int, pos: str, side_mask: str, src_mask: str, rgb: str, c: str,
           kernel: np.ndarray, flow: tuple[str, np.ndarray] | None, scale: int, win: int, band_coc: float, margin: float,
           fp16: bool, rows: bool, slope: np.ndarray | None = None, warp: tuple[str, float] | None = None,
-          gradient: tuple[np.ndarray, tuple[str, str]] | None = None) -> onnx.GraphProto:
+          gradient: tuple[np.ndarray, tuple[str, str]] | None = None, receiver_slope: str | None = None) -> onnx.GraphProto:
     """Then-branch: band ``n``'s contribution ``(1, B, 3, 6, win, win)``, (near, same, far) x (RGB, coverage),
     its convolution on a grid ``scale`` times coarser when ``scale > 1`` (``kernel`` is then
     the binned one, :func:`~neuralbokeh.networks.lens.reduce_kernel`), by rows
@@ -373,7 +373,8 @@ def _band(b: GraphBuilder, k: int, n: int, side: int, pos: str, side_mask: str, 
     k, k)`` (x, y; ``LensBokeh.kernel_gradients``, binned as ``kernel``), the window's pixel
     offsets from the tile's centre, x ``(1, 1, 1, win)`` and y ``(1, 1, win, 1)`` px): two more
     features per channel, the gate times each offset, each scattered by its derivative
-    (``model.field_gradient``)."""
+    (``model.field_gradient``). ``receiver_slope``: the window's :func:`coc_slope_graph`
+    (``model.occlusion_margin_slope``): each receiver's margin is at least it times ``d / 2``."""
     g = Nodes(GraphBuilder(b.count), f"t{k}.n{n}s{side}")
     # the gradient's features are colour times offsets of up to half a window, whose sums cancel
     # beside a highlight far below float16's precision (a 1e4 highlight missed the 2e-2 parity)
@@ -432,9 +433,15 @@ def _band(b: GraphBuilder, k: int, n: int, side: int, pos: str, side_mask: str, 
         cover_out = g.op("Slice", out, g.c("c3", [3], np.int64), g.c("c6", [6], np.int64), ax1)
         out = g.op("Concat", colour_out, g.op("Div", cover_out, gain), axis=1)
     delta = g.op("Sub", g.c("band_coc", band_coc), c)  # < 0: the band is nearer than the receiver
-    zero, inv = g.c("zero", 0.0), g.c("inv_margin", 1.0 / margin)
-    near = g.op("Clip", g.op("Mul", g.op("Sub", g.op("Neg", delta), g.c("margin", margin)), inv), zero, one)
-    far = g.op("Clip", g.op("Mul", g.op("Sub", delta, g.c("margin", margin)), inv), zero, one)
+    zero = g.c("zero", 0.0)
+    if receiver_slope is None:
+        m, inv = g.c("margin", margin), g.c("inv_margin", 1.0 / margin)
+        near = g.op("Clip", g.op("Mul", g.op("Sub", g.op("Neg", delta), m), inv), zero, one)
+        far = g.op("Clip", g.op("Mul", g.op("Sub", delta, m), inv), zero, one)
+    else:  # one margin per receiver (LensBokeh.tile_accumulators)
+        m = g.op("Max", g.op("Mul", receiver_slope, g.c("half_d", 0.5 * abs(band_coc))), g.c("margin", margin))
+        near = g.op("Clip", g.op("Div", g.op("Sub", g.op("Neg", delta), m), m), zero, one)
+        far = g.op("Clip", g.op("Div", g.op("Sub", delta, m), m), zero, one)
     same = g.op("Sub", g.op("Sub", one, near), far)
     # one broadcast product (1, B, 3, 1) x (1, B, 1, 6) -> (1, B, 3, 6): written once, and as the
     # branch's output (a Reshape there would be a copy)
@@ -442,12 +449,32 @@ def _band(b: GraphBuilder, k: int, n: int, side: int, pos: str, side_mask: str, 
     return _branch(g, g.op("Mul", weights, g.op("Unsqueeze", out, g.c("ax02", [0, 2], np.int64))), f"t{k}_band{n}_{side}")
 
 
+def coc_slope_graph(g: Nodes, c: str, h: int, w: int) -> str:
+    """:func:`~neuralbokeh.networks.lens.coc_slope` of the frame's CoC ``(B, 1, h, w)`` (px), op for op."""
+    zero = g.c("zero", 0.0)
+    parts = []
+    for axis, size in ((3, w), (2, h)):
+        ax = g.c(f"slope_ax{axis}", [axis], np.int64)
+        d = g.op("Sub", g.op("Slice", c, g.c("one_i", [1], np.int64), g.c(f"size{axis}", [size], np.int64), ax),
+                 g.op("Slice", c, g.c("zero_i", [0], np.int64), g.c(f"last{axis}", [size - 1], np.int64), ax))
+        pad = [0] * 8
+        pad[axis] = 1  # before
+        before = g.op("Pad", d, g.c(f"slope_before{axis}", pad, np.int64), zero, mode="constant")
+        pad = [0] * 8
+        pad[4 + axis] = 1  # after
+        after = g.op("Pad", d, g.c(f"slope_after{axis}", pad, np.int64), zero, mode="constant")
+        agree = g.op("Greater", g.op("Mul", before, after), zero)
+        smaller = g.op("Min", g.op("Abs", before), g.op("Abs", after))
+        parts.append(g.op("Where", agree, smaller, zero))
+    return g.op("Sqrt", g.op("Add", g.op("Mul", parts[0], parts[0]), g.op("Mul", parts[1], parts[1])))
+
+
 def _tile(b: GraphBuilder, k: int, cut: tuple[str, str, str | None, tuple[str, str, str] | None], kernels: Mapping[int, np.ndarray],
           flow: tuple[str, Mapping[int, np.ndarray]] | None,
           scales: Mapping[int, int], src: np.ndarray, cfg: ModelConfig, contract: Contract, plan: BandPlan, fp16: bool,
           rows: bool, margins: Mapping[int, float], slopes: Mapping[int, np.ndarray] | None = None,
           centroids: tuple[str, np.ndarray, Mapping[int, np.ndarray], np.ndarray] | None = None,
-          gradients: tuple[Mapping[int, np.ndarray], np.ndarray] | None = None) -> onnx.GraphProto:
+          gradients: tuple[Mapping[int, np.ndarray], np.ndarray] | None = None, coc_slopes: str | None = None) -> onnx.GraphProto:
     """Then-branch: tile ``k``'s accumulators ``(B, 3, 6, win, win)``, flattened to ``(1, B 18 win^2)``,
     from its window of the inputs ``aif`` and ``coc`` (``cut``, :func:`_cut`: a tile that does not
     run cuts nothing); band ``n``, side ``s`` runs where ``band_active[k, n - 1, s]``. A
@@ -461,7 +488,8 @@ def _tile(b: GraphBuilder, k: int, cut: tuple[str, str, str | None, tuple[str, s
     None; a band and side is warped where radius x offset reaches ``FLOW_MIN_PX``, as the module.
     ``gradients``: (``{n: (2, 2, 3, k, k)}`` (axis, side) the kernels' derivatives in the source
     position, ``(2,)`` the window's top-left corner less the tile's centre (x, y px;
-    ``window_offsets_px``)) for ``model.field_gradient``, or None."""
+    ``window_offsets_px``)) for ``model.field_gradient``, or None. ``coc_slopes``: the frame's
+    :func:`coc_slope_graph` ``(B, 1, H, W)`` (``model.occlusion_margin_slope``), or None."""
     g = Nodes(GraphBuilder(b.count), f"t{k}")
     blocks, diameters = plan.blocks, plan.diameters
     win = src.shape[-1]
@@ -498,6 +526,7 @@ def _tile(b: GraphBuilder, k: int, cut: tuple[str, str, str | None, tuple[str, s
             ramp = np.arange(win, dtype=np.float64) + 0.5
             pixel_offsets = (g.c("offset_x", (ramp + gradients[1][0]).reshape(1, 1, 1, win)),
                              g.c("offset_y", (ramp + gradients[1][1]).reshape(1, 1, win, 1)))
+        receiver_slope = None if coc_slopes is None else _cut(g, coc_slopes, cut)
         offsets = None
         if centroids is not None:  # LensBokeh.centroid_offsets: each pixel's centroid minus the tile's, per side
             off = g.op("Sub", _cut(g, centroids[0], cut), g.c("centroid", np.reshape(centroids[1], (1, 4, 1, 1))))
@@ -512,7 +541,7 @@ def _tile(b: GraphBuilder, k: int, cut: tuple[str, str, str | None, tuple[str, s
                              None if slopes is None else slopes[n][side],
                              None if offsets is None or abs(centroids[2][n][side]) * centroids[3][side] < FLOW_MIN_PX
                              else (offsets[side], float(centroids[2][n][side])),
-                             None if gradients is None else (gradients[0][n][:, side], pixel_offsets))
+                             None if gradients is None else (gradients[0][n][:, side], pixel_offsets), receiver_slope)
                 skip = Nodes(GraphBuilder(g.b.count), f"t{k}.n{n}s{side}.skip")
                 empty = skip.op("Slice", base, skip.c("s0", [0], np.int64), skip.c("s0", [0], np.int64), skip.c("ax0", [0], np.int64))
                 else_graph = _branch(skip, empty, f"t{k}_band{n}_{side}_skip")
@@ -793,6 +822,9 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: Mod
         at_rows = top.op("MatMul", b.const("centroid_rows", rows_w), b.const("centroid_nodes", np.reshape(nodes, (4, *nodes.shape[-2:]))))
         full = top.op("MatMul", at_rows, b.const("centroid_cols_t", np.transpose(cols_w)))  # (4, H, W)
         centroid_map = top.op("Unsqueeze", full, b.const("ax0", [0], np.int64))
+    coc_slopes = None
+    if cfg.occlusion_margin_slope:  # of the whole frame, each tile cuts its window (LensBokeh.tile_accumulators)
+        coc_slopes = coc_slope_graph(top, top.op("Mul", "coc", top.c("coc_scale_px", float(contract.coc_scale_px))), h, w)
     corners = window_offsets_px(layout, h, w)
     ring = edge_ring(top, "aif", h, w) if any(layout.pads(h, w)) else None
     ring_rows, ring_cols = layout.ring_indices(h, w)
@@ -813,7 +845,7 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: Mod
         tile_centroids = None if centroid_map is None else (centroid_map, centroids[1][k], centroids[2], centroids[3][k])
         tile_gradients = None if gradients is None else ({n: gradients[n][k] for n in gradients}, corners[k])
         then = _tile(b, k, cut, tile_kernels, tile_flow, scales, source_masks[k], cfg, contract, plan, fp16, rows, margins, tile_slopes,
-                     tile_centroids, tile_gradients)
+                     tile_centroids, tile_gradients, coc_slopes)
         b.count += 10_000  # branch-local names stay unique across branches
         other = _idle(b, k, win)
         b.count += 10_000

@@ -31,7 +31,7 @@ SILHOUETTE_PX = 1
 # what a checkpoint written before a key existed meant by leaving it out, where the default has
 # changed since: its network is rebuilt as it was trained
 LEGACY_DEFAULTS = {"near_focus_px": 0.0, "pixel_blur": False, "surface_fill": False, "occlusion_margin_learned": False,
-                   "field_flow": False, "field_gradient": False}
+                   "occlusion_margin_step": False, "occlusion_margin_slope": False, "field_flow": False, "field_gradient": False}
 KERNEL_SIZES = ("growing", "fixed3")
 TILINGS = ("overlap", "none", "no_overlap")
 HEADS = ("identity", "paper")
@@ -74,6 +74,15 @@ class ModelConfig:
             occlusion_margin_px, occlusion_margin_rel * d)`` (lens, >= 0; 0: fixed). A sloped
             surface at a large CoC spans several px of CoC across a blur's reach; a fixed 2 px
             margin makes its nearer part occlude its farther part.
+        occlusion_margin_step: each band's margin is at least the band lattice's step there
+            (lens; :meth:`~neuralbokeh.core.bands.BandPlan.band_step_px`): a band's light carries
+            its centre's CoC, up to a step from a receiver on the same plane facing the camera,
+            so a narrower margin splits one plane into nearer and farther light.
+        occlusion_margin_slope: each receiving pixel's margin is at least its own surface's CoC
+            change across the band's reach, ``|grad c| * d / 2`` (lens;
+            :func:`~neuralbokeh.networks.lens.coc_slope`: each axis' one-sided difference of the
+            smaller size, 0 where the two differ in sign, so a depth edge is not a slope).
+            Planes facing the camera keep the margin above.
         occlusion_margin_learned: learn a factor on that margin (lens; 1 at the start, the
             same for every band): how far apart in CoC two pixels may be and still be one
             surface depends on the data (how its depth was made, how its surfaces slope).
@@ -147,6 +156,8 @@ class ModelConfig:
     occlusion_margin_px: float = 2.0
     occlusion_margin_rel: float = 0.0
     occlusion_margin_learned: bool = True
+    occlusion_margin_step: bool = True
+    occlusion_margin_slope: bool = True
     fill: str = "background"
     surface_fill: bool = True
     band_blend: str = "hat"
@@ -176,6 +187,10 @@ class ModelConfig:
             raise ValueError(f"model.near_focus_px must be a finite number >= 0 px, got {a!r}")
         if not isinstance(self.occlusion_margin_learned, bool):
             raise ValueError(f"model.occlusion_margin_learned must be true or false, got {self.occlusion_margin_learned!r}")
+        if not isinstance(self.occlusion_margin_step, bool):
+            raise ValueError(f"model.occlusion_margin_step must be true or false, got {self.occlusion_margin_step!r}")
+        if not isinstance(self.occlusion_margin_slope, bool):
+            raise ValueError(f"model.occlusion_margin_slope must be true or false, got {self.occlusion_margin_slope!r}")
         if not isinstance(self.surface_fill, bool):
             raise ValueError(f"model.surface_fill must be true or false, got {self.surface_fill!r}")
         if not isinstance(self.field_flow, bool):

@@ -133,10 +133,28 @@ def band_gates(coc_px: torch.Tensor, max_coc_px: float, blocks: int) -> torch.Te
     return torch.stack([_gate(pos, n) for n in range(blocks + 1)], dim=-1)
 
 
+def coc_slope(coc: torch.Tensor) -> torch.Tensor:
+    """How fast a surface's CoC changes, ``(..., H, W)`` -> ``(..., H, W)`` (px of CoC per px, >= 0).
+
+    Each axis' derivative is the one-sided difference of the smaller size, or 0 where the two
+    differ in sign (minmod): across a depth edge one of them is the jump and the other the
+    surface's own slope, so an edge is not read as a slope (a central difference would be half
+    the jump). The frame's outer rows and columns have one difference only: 0 there.
+    """
+    def minmod(d: torch.Tensor, dim: int) -> torch.Tensor:
+        # the difference to the previous pixel, and to the next one (0 before the first and after the last)
+        before, after = (F.pad(d, p) for p in (((1, 0), (0, 1)) if dim == -1 else ((0, 0, 1, 0), (0, 0, 0, 1))))
+        return torch.where(before * after > 0, torch.minimum(before.abs(), after.abs()), torch.zeros_like(before))
+    gx = minmod(coc[..., :, 1:] - coc[..., :, :-1], -1)
+    gy = minmod(coc[..., 1:, :] - coc[..., :-1, :], -2)
+    return torch.sqrt(gx * gx + gy * gy)
+
+
 def bucket_weights(band_coc: float, receiver_coc: torch.Tensor, margin: float | torch.Tensor) -> torch.Tensor:
     """Soft (near, same, far) weights ``(3, ...)`` of light from a band at signed CoC ``band_coc``
     arriving at pixels whose own signed CoC is ``receiver_coc`` (px; negative = in front), each
-    ramp ``margin`` px wide (> 0; a scalar tensor when learned)."""
+    ramp ``margin`` px wide (> 0; a scalar tensor when learned, or one per receiver, shaped as
+    ``receiver_coc``)."""
     delta = band_coc - receiver_coc  # < 0: the source is nearer than the receiver
     near = ((-delta - margin) / margin).clamp(0.0, 1.0)
     far = ((delta - margin) / margin).clamp(0.0, 1.0)
@@ -827,6 +845,10 @@ class LensBokeh(nn.Module):
                                  1 if shared else b)
         pupils, drift, offsets = field.pupils, field.drift, field.offsets
         coc_flat = coc.reshape(b * n_t, win, win)
+        slope_flat = None
+        if cfg.occlusion_margin_slope:  # of the whole frame: a window's own edge is not a surface's, and no tiling changes it
+            frame_slope = coc_slope(x[:, 3:] * float(self.contract.coc_scale_px))
+            slope_flat = tile(frame_slope, layout).reshape(b * n_t, win, win)
         rgb_flat = rgb.reshape(b * n_t, 3, win, win)
         scales = scales or {}
         hermite = cfg.band_blend == "hermite"
@@ -867,7 +889,10 @@ class LensBokeh(nn.Module):
                 out = _scatter(feats, kern[:, side], which, scales.get(n, 1), extra, flow)
                 if grad is not None:  # coverage is geometric: divided by a uniform field's light, as the reference scatter's
                     out = torch.cat([out[:, :3], out[:, 3:] / self.colour_gains(drift[which, side], float(diameters[n]), side)], 1)
-                bw = bucket_weights(sign * float(diameters[n]), coc_flat[idx], self.occlusion_margin(float(diameters[n])))
+                margin = self.occlusion_margin(float(diameters[n]), plan.band_step_px(n))
+                if slope_flat is not None:  # the receiver's own surface's CoC change across the band's reach
+                    margin = torch.maximum(slope_flat[idx] * (0.5 * float(diameters[n])), torch.as_tensor(margin, dtype=x.dtype))
+                bw = bucket_weights(sign * float(diameters[n]), coc_flat[idx], margin)
                 contrib = bw.permute(1, 0, 2, 3).unsqueeze(2) * out.unsqueeze(1)  # (M, 3, 6, win, win)
                 # one band at a time: memory stays O(image), not O(image x bands); in place, so no
                 # band copies the whole accumulator
@@ -890,11 +915,15 @@ class LensBokeh(nn.Module):
         beside = square_max(hides.to(coc.dtype), SILHOUETTE_PX) > 0.5
         return background, beside, bound
 
-    def occlusion_margin(self, diameter: float) -> torch.Tensor | float:
+    def occlusion_margin(self, diameter: float, step_px: float = 0.0) -> torch.Tensor | float:
         """The buckets' margin (px of CoC, > 0) for light of a band of diameter ``diameter`` (px):
-        ``ModelConfig.occlusion_margin`` times the learned factor (``model.occlusion_margin_learned``)."""
+        ``ModelConfig.occlusion_margin`` times the learned factor (``model.occlusion_margin_learned``),
+        and with ``model.occlusion_margin_step`` at least ``step_px``, the lattice's step at the band."""
         base = self.config.occlusion_margin(diameter)
-        return base if self.margin_scale is None else base * torch.exp(self.margin_scale[0])
+        margin = base if self.margin_scale is None else base * torch.exp(self.margin_scale[0])
+        if not self.config.occlusion_margin_step:
+            return margin
+        return torch.clamp(margin, min=step_px) if torch.is_tensor(margin) else max(margin, step_px)
 
     def surface_fill_share(self) -> torch.Tensor:
         """The share (0..1) of a visible pixel's hole that its own surface's blurred light fills
