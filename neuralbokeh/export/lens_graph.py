@@ -373,8 +373,9 @@ def _band(b: GraphBuilder, k: int, n: int, side: int, pos: str, side_mask: str, 
     k, k)`` (x, y; ``LensBokeh.kernel_gradients``, binned as ``kernel``), the window's pixel
     offsets from the tile's centre, x ``(1, 1, 1, win)`` and y ``(1, 1, win, 1)`` px): two more
     features per channel, the gate times each offset, each scattered by its derivative
-    (``model.field_gradient``). ``receiver_slope``: the window's :func:`coc_slope_graph`
-    (``model.occlusion_margin_slope``): each receiver's margin is at least it times ``d / 2``."""
+    (``model.field_gradient``). ``receiver_slope``: the window's cut of the frame's
+    :func:`coc_slope_graph` (``model.occlusion_margin_slope``): each receiver's margin is at
+    least it times ``d / 2``."""
     g = Nodes(GraphBuilder(b.count), f"t{k}.n{n}s{side}")
     # the gradient's features are colour times offsets of up to half a window, whose sums cancel
     # beside a highlight far below float16's precision (a 1e4 highlight missed the 2e-2 parity)

@@ -139,7 +139,8 @@ def coc_slope(coc: torch.Tensor) -> torch.Tensor:
     Each axis' derivative is the one-sided difference of the smaller size, or 0 where the two
     differ in sign (minmod): across a depth edge one of them is the jump and the other the
     surface's own slope, so an edge is not read as a slope (a central difference would be half
-    the jump). The frame's outer rows and columns have one difference only: 0 there.
+    the jump). The first and last columns read no slope across, the first and last rows none
+    down: each has one difference only.
     """
     def minmod(d: torch.Tensor, dim: int) -> torch.Tensor:
         # the difference to the previous pixel, and to the next one (0 before the first and after the last)
