@@ -83,7 +83,7 @@ def methods(aperture: ApertureModel, steps: list[float], jumps: list[float]) -> 
 
 # what a trained network's fill is: its config fields and the parameters it learns
 FILL_FIELDS = ("fill", "surface_fill", "occlusion_margin_px", "occlusion_margin_rel", "occlusion_margin_learned",
-               "occlusion_margin_step", "occlusion_margin_slope")
+               "occlusion_margin_step", "occlusion_margin_slope", "occlusion_source_coc")
 FILL_PARAMETERS = ("fill_gain", "surface_fill", "margin_scale")
 
 

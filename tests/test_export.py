@@ -488,13 +488,15 @@ def test_a_checkpoint_from_before_the_near_focus_lattice_keeps_its_uniform_bands
     assert np.abs(uniform - _run_onnx(busy_onnx, x[:, :3].numpy(), x[:, 3:].numpy())).max() > 1e-3
 
 
-@pytest.mark.parametrize("option", ["margin_rel", "margin_learned", "margin_step", "no_margin_slope", "pixel_blur", "surface_fill"])
+@pytest.mark.parametrize("option", ["margin_rel", "margin_learned", "margin_step", "no_margin_slope", "no_source_coc", "pixel_blur",
+                                    "surface_fill"])
 def test_a_margin_that_grows_with_the_band_and_a_pixel_blur_export_with_parity(busy_checkpoint, busy_onnx, tmp_path, option):
     """``occlusion_margin_rel``: each band's buckets ramp over ``max(margin_px, rel d_n)``, a
     constant of the band in the graph as in PyTorch; ``margin_learned``: so is the learned factor
     on it; ``margin_step``: a learned factor under the lattice's step, which floors it;
     ``no_margin_slope``: the default's margin from each receiver's CoC slope (made in the graph
-    from the CoC input; the calibration inputs' CoC is a smooth field), left out. ``pixel_blur``: the kernels the graph holds
+    from the CoC input; the calibration inputs' CoC is a smooth field), left out;
+    ``no_source_coc``: the default's carried source CoC, left out. ``pixel_blur``: the kernels the graph holds
     are the module's, blurred. ``surface_fill``: its learned share, a constant of the graph.
     Each changes the output."""
     data = load_checkpoint(busy_checkpoint)
@@ -503,8 +505,12 @@ def test_a_margin_that_grows_with_the_band_and_a_pixel_blur_export_with_parity(b
     elif option == "no_margin_slope":
         assert data["model_config"]["occlusion_margin_slope"]  # the default
         data["model_config"] = {**data["model_config"], "occlusion_margin_slope": False}
+    elif option == "no_source_coc":
+        assert data["model_config"]["occlusion_source_coc"]  # the default
+        data["model_config"] = {**data["model_config"], "occlusion_source_coc": False}
     elif option in ("margin_learned", "margin_step"):
         assert data["model_config"]["occlusion_margin_learned"] and "margin_scale" in data["model_state"]  # the default
+        data["model_config"] = {**data["model_config"], "occlusion_margin_step": option == "margin_step"}
         data["model_state"] = {**data["model_state"], "margin_scale": torch.tensor([math.log(0.5 if option == "margin_learned" else 0.1)])}
     elif option == "surface_fill":
         assert data["model_config"]["surface_fill"] and "surface_fill" in data["model_state"]  # the default
@@ -526,6 +532,8 @@ def test_a_margin_that_grows_with_the_band_and_a_pixel_blur_export_with_parity(b
         assert plan.band_step_px(1) > 0.2  # the factor's 2 px x 0.1 lies under the step: floored
     elif option == "no_margin_slope":
         assert not model.config.occlusion_margin_slope
+    elif option == "no_source_coc":
+        assert not model.config.occlusion_source_coc
     elif option == "surface_fill":
         assert float(model.surface_fill_share().detach()) == pytest.approx(0.3)
     else:
@@ -540,8 +548,8 @@ def test_a_margin_that_grows_with_the_band_and_a_pixel_blur_export_with_parity(b
 
 
 def test_an_export_may_choose_its_tiles_and_only_the_field_sampling_changes(busy_checkpoint, tmp_path):
-    """Tile cores are an export setting: with one pupil over the whole sensor a file with larger
-    tiles renders what the trained tiles render; with a field-dependent pupil it samples the field
+    """Tile cores are an export setting: with one pupil over the whole sensor (and each band's light
+    at its centre's CoC) a file with larger tiles renders what the trained tiles render; with a field-dependent pupil it samples the field
     at fewer places and differs, while matching its own PyTorch model (the export's parity)."""
     data = load_checkpoint(busy_checkpoint)
     # one pupil everywhere: no field corrections, the cat-eye's circle left where it is on the axis
@@ -549,8 +557,10 @@ def test_an_export_may_choose_its_tiles_and_only_the_field_sampling_changes(busy
     flat = dict(data, model_state={k: still.get(k, lambda v: v)(v) for k, v in data["model_state"].items()})
     # on the lattice uniform in the CoC, whose last kernel (9 px) fits the fixture's 4 px overlap:
     # the default lattice's 13 px kernels (two more bands, each block 2n + 1 px) carry their
-    # pupils' 1e-3 floor past a window's edge, and what is lost there differs with the tiles (3.4e-5)
-    flat["model_config"] = {**data["model_config"], "near_focus_px": 0.0, "blocks": 4}
+    # pupils' 1e-3 floor past a window's edge, and what is lost there differs with the tiles (3.4e-5).
+    # Without the carried source CoC: a mean over each tile's own sources, it parts nearer and
+    # farther light by how the tiles pool them (7e-3 here, on random depths)
+    flat["model_config"] = {**data["model_config"], "near_focus_px": 0.0, "blocks": 4, "occlusion_source_coc": False}
     save_checkpoint(tmp_path / "flat.pt", {k: v for k, v in flat.items() if k not in ("format", "format_version", "package_version")})
     model, _ = load_model(busy_checkpoint)
     x = calibration_inputs(*model.contract.size, count=2, seed=6)

@@ -496,9 +496,9 @@ def test_the_occlusion_margin_learns_the_datas(truth_px):
     # a textured surface sloping from 3 to 11 px of CoC: light of each band reaches receivers
     # whose CoC differs by 0-5 px, so how it is sorted into near / same / far depends on the
     # margin. Rendered by the same network with a fixed margin, the learned one (2 px at the
-    # start) moves towards it. The factor alone: no floor at the lattice's step (2 px here) or
-    # at the surface's slope
-    alone = {"occlusion_margin_step": False, "occlusion_margin_slope": False}
+    # start) moves towards it. The factor alone: no floor at the surface's slope, and each band's
+    # light at its centre's CoC (with the sources' CoC carried, this ramp is one surface whatever the margin)
+    alone = {"occlusion_margin_slope": False, "occlusion_source_coc": False}
     g = torch.Generator().manual_seed(3)
     img = 0.05 + torch.rand(1, 3, 48, 48, generator=g, dtype=torch.float64)
     coc = torch.linspace(3.0, 11.0, 48, dtype=torch.float64).expand(1, 1, 48, 48).contiguous()
@@ -550,6 +550,41 @@ def test_the_slope_margin_leaves_planes_facing_the_camera_as_they_were():
     off, on = _model(occlusion_margin_px=1.0, occlusion_margin_slope=False), _model(occlusion_margin_px=1.0)
     assert torch.equal(_run(off, img, planes), _run(on, img, planes))
     assert float((_run(off, img, ramp) - _run(on, img, ramp)).abs().max()) > 1e-4
+
+
+def _bucket_cover(model, linear, coc_px):
+    """The (near, same, far) coverage, channels' mean, of the one tile's core ``(3, H, W)``."""
+    x = torch.cat([NORM.encode(linear), coc_px / C_MAX], 1).float()
+    with torch.no_grad():
+        acc = model.tile_accumulators(x)
+    o = model.config.overlap
+    return acc[0, 0, :, 3:6].mean(1)[:, o:-o, o:-o].double()
+
+
+def test_the_carried_source_coc_keeps_a_plane_whole_and_parts_layers_closer_than_a_step():
+    """``occlusion_source_coc`` (the default, without the step floor) with a margin (0.5 px) under
+    the lattice's step (2 px): a plane facing the camera midway between two band centres (6 px, between 5 and 7)
+    stays one surface, which the band centres alone split into nearer and farther halves. Two
+    planes 1.2 px apart (5.4 px left of column 16, 6.6 right): the nearer one's light on the first
+    farther pixel is nearer light (a disk 5.4 px wide covers about a third of it), where the step
+    floor holds it all the same; and away from the edge the farther plane's own light is not."""
+    g = torch.Generator().manual_seed(4)
+    img = 0.1 + torch.rand(1, 3, 32, 32, generator=g, dtype=torch.float64)
+    plane = torch.full((1, 1, 32, 32), 6.0, dtype=torch.float64)
+    two = torch.full((1, 1, 32, 32), 6.6, dtype=torch.float64)
+    two[..., :16] = 5.4
+    kw = dict(size=32, tile=32, overlap=8, occlusion_margin_px=0.5)
+    carry = _model(**kw)  # the default
+    centres = _model(occlusion_source_coc=False, **kw)
+    floor = _model(occlusion_source_coc=False, occlusion_margin_step=True, **kw)
+    whole = _bucket_cover(carry, img, plane)
+    assert float(whole[0].max()) < 1e-6 and float(whole[2].max()) < 1e-6
+    split = _bucket_cover(centres, img, plane)
+    assert float(split[0, 8:24, 8:24].min()) > 0.45 and float(split[2, 8:24, 8:24].min()) > 0.45  # measured 0.5 each
+    near = _bucket_cover(carry, img, two)[0, 8:24]
+    assert float(near[:, 16].min()) > 0.2 and float(near[:, 20:].max()) < 1e-6  # measured 0.29 and 0
+    assert float(_bucket_cover(floor, img, two)[0].max()) < 1e-6
+    assert float(_bucket_cover(centres, img, two)[0, 8:24, 20:].min()) > 0.15  # the plane's own light, nearer: 0.2
 
 
 def test_the_far_light_fill_takes_the_far_mean_up_to_its_gain_and_never_spreads_a_highlight():

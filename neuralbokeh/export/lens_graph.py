@@ -55,7 +55,7 @@ from ..core.contract import Contract
 from ..core.normalization import Normalization
 from ..core.tiling import pyramid_levels
 from ..networks.config import SILHOUETTE_PX, SURFACE_FILL_EPS, ModelConfig
-from ..networks.lens import FLOW_MIN_PX, window_offsets_px
+from ..networks.lens import FLOW_MIN_PX, SOURCE_COC_MIN_COVER, source_coc_ranges, window_offsets_px
 from ..ops.holes import JUMP_PX, LOG_OFFSET, OUTLIER_RATIO, STEP_PX
 from .graph import GraphBuilder, finish_model
 
@@ -330,6 +330,18 @@ def conv_rows(g: Nodes, feats: str, weights: np.ndarray, size: int, fp16: bool) 
     return g.op("Col2Im", cols, g.c("rows_hw", [size, size], np.int64), g.c("rows_block", [k, 1], np.int64), pads=[p, 0, p, 0])
 
 
+def _correlate(g: Nodes, feats: str, weights: np.ndarray, groups: int, size: int, fp16: bool, rows: bool) -> str:
+    """The grouped 'same' correlation of ``feats`` ``(B, C G, size, size)`` by ``weights`` ``(C, G, k, k)``
+    (``C = groups``): by rows (:func:`conv_rows`) or one ``Conv``, in float16 when ``fp16``."""
+    if rows:
+        return conv_rows(g, feats, weights, size, fp16)
+    p = weights.shape[-1] // 2
+    if not fp16:
+        return g.op("Conv", feats, g.c("w", weights), group=groups, pads=[p, p, p, p])
+    conv = g.op("Conv", g.op("Cast", feats, to=TensorProto.FLOAT16), g.c("w", weights, np.float16), group=groups, pads=[p, p, p, p])
+    return g.op("Cast", conv, to=TensorProto.FLOAT)
+
+
 def _hermite_weights(g: Nodes, pos: str, n: int) -> tuple[str, str]:
     """:func:`~neuralbokeh.core.bands.hermite_weights`, op for op: band ``n``'s (kernel, slope) weights."""
     one = g.c("one", 1.0)
@@ -355,7 +367,8 @@ def _pixel_centres(win: int) -> np.ndarray:
 def _band(b: GraphBuilder, k: int, n: int, side: int, pos: str, side_mask: str, src_mask: str, rgb: str, c: str,
           kernel: np.ndarray, flow: tuple[str, np.ndarray] | None, scale: int, win: int, band_coc: float, margin: float,
           fp16: bool, rows: bool, slope: np.ndarray | None = None, warp: tuple[str, float] | None = None,
-          gradient: tuple[np.ndarray, tuple[str, str]] | None = None, receiver_slope: str | None = None) -> onnx.GraphProto:
+          gradient: tuple[np.ndarray, tuple[str, str]] | None = None, receiver_slope: str | None = None,
+          carry: tuple[float, float] | None = None) -> onnx.GraphProto:
     """Then-branch: band ``n``'s contribution ``(1, B, 3, 6, win, win)``, (near, same, far) x (RGB, coverage),
     its convolution on a grid ``scale`` times coarser when ``scale > 1`` (``kernel`` is then
     the binned one, :func:`~neuralbokeh.networks.lens.reduce_kernel`), by rows
@@ -375,7 +388,10 @@ def _band(b: GraphBuilder, k: int, n: int, side: int, pos: str, side_mask: str, 
     features per channel, the gate times each offset, each scattered by its derivative
     (``model.field_gradient``). ``receiver_slope``: the window's cut of the frame's
     :func:`coc_slope_graph` (``model.occlusion_margin_slope``): each receiver's margin is at
-    least it times ``d / 2``."""
+    least it times ``d / 2``. ``carry``: the range (px of |CoC| from the band's centre, low and
+    high) of its sources' CoC (``model.occlusion_source_coc``): each source's offset from the
+    centre is scattered with its light (by the green channel's kernel), and the buckets compare
+    the receiver with the light's mean source CoC."""
     g = Nodes(GraphBuilder(b.count), f"t{k}.n{n}s{side}")
     # the gradient's features are colour times offsets of up to half a window, whose sums cancel
     # beside a highlight far below float16's precision (a 1e4 highlight missed the 2e-2 parity)
@@ -397,43 +413,51 @@ def _band(b: GraphBuilder, k: int, n: int, side: int, pos: str, side_mask: str, 
     else:  # interleaved per channel, e.g. (kernel, slope): (B, 6, P, win, win) -> (B, 6 P, win, win)
         pair = g.op("Concat", *(g.op("Unsqueeze", f, g.c("ax2", [2], np.int64)) for f in parts), axis=2)
         feats = g.op("Reshape", pair, g.c("pair_shape", [0, 6 * len(parts), win, win], np.int64))
+    # model.occlusion_source_coc: the value gate x each source's CoC less the band's, scattered alone
+    moment = None if carry is None else g.op("Mul", gates[0], g.op("Sub", c, g.c("band_coc", band_coc)))
     offsets = None if warp is None else warp[0]
     if scale > 1:
         extra = -(-win // scale) * scale - win
-        feats = g.op("AveragePool", feats, kernel_shape=[scale, scale], strides=[scale, scale], pads=[0, 0, extra, extra],
-                     count_include_pad=1)
+        pool = dict(kernel_shape=[scale, scale], strides=[scale, scale], pads=[0, 0, extra, extra], count_include_pad=1)
+        feats = g.op("AveragePool", feats, **pool)
+        moment = None if moment is None else g.op("AveragePool", moment, **pool)
         if offsets is not None:  # the flow box-averaged as the features
-            offsets = g.op("AveragePool", offsets, kernel_shape=[scale, scale], strides=[scale, scale], pads=[0, 0, extra, extra],
-                           count_include_pad=1)
+            offsets = g.op("AveragePool", offsets, **pool)
     if warp is not None:  # flow_warp on this grid: its pixel centres (align_corners=False) minus the flow in its px
         n_px = -(-win // scale)
         moved = g.op("Mul", g.op("Transpose", offsets, perm=[0, 2, 3, 1]), g.c("to_grid", -2.0 * warp[1] / (scale * n_px)))
         grid = g.op("Add", g.c("centres", _pixel_centres(n_px)), moved)
         batch = g.op("Concat", g.op("Shape", feats, end=1), g.c("grid_tail", [n_px, n_px, 2], np.int64), axis=0)
-        feats = g.op("GridSample", feats, g.op("Expand", grid, batch), mode="bilinear", padding_mode="border", align_corners=0)
+        grid = g.op("Expand", grid, batch)
+        feats = g.op("GridSample", feats, grid, mode="bilinear", padding_mode="border", align_corners=0)
+        if moment is not None:
+            moment = g.op("GridSample", moment, grid, mode="bilinear", padding_mode="border", align_corners=0)
     psfs = [kernel] + ([] if slope is None else [slope]) + ([] if gradient is None else list(gradient[0]))
     w = np.stack([np.concatenate([f, f]) for f in psfs], axis=1)[:, :, ::-1, ::-1]  # (6, P, k, k), correlation weights
-    p = kernel.shape[-1] // 2
-    if rows:
-        out = conv_rows(g, feats, w, -(-win // scale), fp16)
-    elif fp16:
-        x16 = g.op("Cast", feats, to=TensorProto.FLOAT16)
-        conv = g.op("Conv", x16, g.c("w", w, np.float16), group=6, pads=[p, p, p, p])
-        out = g.op("Cast", conv, to=TensorProto.FLOAT)
-    else:
-        out = g.op("Conv", feats, g.c("w", w), group=6, pads=[p, p, p, p])
+    outs = [_correlate(g, feats, w, 6, -(-win // scale), fp16, rows)]
+    if moment is not None:  # by the green channel's kernel, whose coverage divides it out below
+        carrier = Nodes(g.b, f"{g.stem}.carry")
+        carrier.nodes = g.nodes  # the same branch: its constants under their own names
+        outs.append(_correlate(carrier, moment, kernel[1:2, None, ::-1, ::-1], 1, -(-win // scale), fp16, rows))
     if scale > 1:
-        up = g.op("Resize", out, "", g.c("scales", [1.0, 1.0, float(scale), float(scale)]), mode="linear",
-                  coordinate_transformation_mode="half_pixel")
-        out = g.op("Slice", up, g.c("zeros2", [0, 0], np.int64), g.c("win2", [win, win], np.int64),
-                   g.c("axes_hw", [2, 3], np.int64))
+        axes_hw, corner, size = g.c("axes_hw", [2, 3], np.int64), g.c("zeros2", [0, 0], np.int64), g.c("win2", [win, win], np.int64)
+        ups = [g.op("Resize", o, "", g.c("scales", [1.0, 1.0, float(scale), float(scale)]), mode="linear",
+                    coordinate_transformation_mode="half_pixel") for o in outs]
+        outs = [g.op("Slice", up, corner, size, axes_hw) for up in ups]
+    out = outs[0]
+    ax1 = g.c("ax1", [1], np.int64)
+    band = g.c("band_coc", band_coc)
+    if moment is not None:  # the light's mean source CoC: the band's centre plus the mean carried offset, in its range
+        cover = g.op("Slice", out, g.c("c4", [4], np.int64), g.c("c5", [5], np.int64), ax1)  # green
+        mean = g.op("Div", outs[1], g.op("Max", cover, g.c("min_cover", SOURCE_COC_MIN_COVER)))
+        lo, hi = sorted(band_coc / abs(band_coc) * v for v in carry)  # signed as the band
+        band = g.op("Add", band, g.op("Min", g.op("Max", mean, g.c("carry_lo", lo)), g.c("carry_hi", hi)))
     if flow is not None and gradient is not None:  # the coverage divided by the colour gain at the receiver
         gain = g.op("Sub", one, g.op("Mul", flow[0], g.c("slope", np.asarray(flow[1]).reshape(1, 3, 1, 1))))
-        ax1 = g.c("ax1", [1], np.int64)
         colour_out = g.op("Slice", out, g.c("c0", [0], np.int64), g.c("c3", [3], np.int64), ax1)
         cover_out = g.op("Slice", out, g.c("c3", [3], np.int64), g.c("c6", [6], np.int64), ax1)
         out = g.op("Concat", colour_out, g.op("Div", cover_out, gain), axis=1)
-    delta = g.op("Sub", g.c("band_coc", band_coc), c)  # < 0: the band is nearer than the receiver
+    delta = g.op("Sub", band, c)  # < 0: the band is nearer than the receiver
     zero = g.c("zero", 0.0)
     if receiver_slope is None:
         m, inv = g.c("margin", margin), g.c("inv_margin", 1.0 / margin)
@@ -533,6 +557,7 @@ def _tile(b: GraphBuilder, k: int, cut: tuple[str, str, str | None, tuple[str, s
             off = g.op("Sub", _cut(g, centroids[0], cut), g.c("centroid", np.reshape(centroids[1], (1, 4, 1, 1))))
             offsets = [g.op("Slice", off, g.c(f"o{s}0", [2 * s], np.int64), g.c(f"o{s}1", [2 * s + 2], np.int64),
                             g.c("ax1", [1], np.int64)) for s in range(2)]
+        carries = source_coc_ranges(plan)
         for n in range(1, blocks + 1):
             for side, (mask, sign) in enumerate(((behind, 1.0), (front, -1.0))):
                 used = g.op("Gather", g.op("Gather", flags, g.c(f"n{n}_row", n - 1, np.int64)), g.c(f"side{side}", side, np.int64))
@@ -542,7 +567,8 @@ def _tile(b: GraphBuilder, k: int, cut: tuple[str, str, str | None, tuple[str, s
                              None if slopes is None else slopes[n][side],
                              None if offsets is None or abs(centroids[2][n][side]) * centroids[3][side] < FLOW_MIN_PX
                              else (offsets[side], float(centroids[2][n][side])),
-                             None if gradients is None else (gradients[0][n][:, side], pixel_offsets), receiver_slope)
+                             None if gradients is None else (gradients[0][n][:, side], pixel_offsets), receiver_slope,
+                             carries[n] if cfg.occlusion_source_coc else None)
                 skip = Nodes(GraphBuilder(g.b.count), f"t{k}.n{n}s{side}.skip")
                 empty = skip.op("Slice", base, skip.c("s0", [0], np.int64), skip.c("s0", [0], np.int64), skip.c("ax0", [0], np.int64))
                 else_graph = _branch(skip, empty, f"t{k}_band{n}_{side}_skip")

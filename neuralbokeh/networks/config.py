@@ -31,7 +31,8 @@ SILHOUETTE_PX = 1
 # what a checkpoint written before a key existed meant by leaving it out, where the default has
 # changed since: its network is rebuilt as it was trained
 LEGACY_DEFAULTS = {"near_focus_px": 0.0, "pixel_blur": False, "surface_fill": False, "occlusion_margin_learned": False,
-                   "occlusion_margin_step": False, "occlusion_margin_slope": False, "field_flow": False, "field_gradient": False}
+                   "occlusion_margin_step": False, "occlusion_margin_slope": False, "occlusion_source_coc": False, "field_flow": False,
+                   "field_gradient": False}
 KERNEL_SIZES = ("growing", "fixed3")
 TILINGS = ("overlap", "none", "no_overlap")
 HEADS = ("identity", "paper")
@@ -75,14 +76,21 @@ class ModelConfig:
             surface at a large CoC spans several px of CoC across a blur's reach; a fixed 2 px
             margin makes its nearer part occlude its farther part.
         occlusion_margin_step: each band's margin is at least the band lattice's step there
-            (lens; :meth:`~neuralbokeh.core.bands.BandPlan.band_step_px`): a band's light carries
-            its centre's CoC, up to a step from a receiver on the same plane facing the camera,
-            so a narrower margin splits one plane into nearer and farther light.
+            (lens; :meth:`~neuralbokeh.core.bands.BandPlan.band_step_px`). Without
+            ``occlusion_source_coc`` a band's light carries its centre's CoC, up to a step from a
+            receiver on the same plane facing the camera, so a narrower margin splits one plane
+            into nearer and farther light; with it (the default) the floor is not needed.
         occlusion_margin_slope: each receiving pixel's margin is at least its own surface's CoC
             change across the band's reach, ``|grad c| * d / 2`` (lens;
             :func:`~neuralbokeh.networks.lens.coc_slope`: each axis' one-sided difference of the
             smaller size, 0 where the two differ in sign, so a depth edge is not a slope).
             Planes facing the camera keep the margin above.
+        occlusion_source_coc: each source pixel's CoC travels with its light (lens): its offset
+            from its band's centre is scattered with the light (by the green channel's kernel), and
+            the buckets compare a receiver with the mean CoC of the light's sources, not with the
+            band's centre (:func:`~neuralbokeh.networks.lens.mean_source_coc`). A plane facing
+            the camera then stays one surface under any margin, so the step floor is not
+            needed, and surfaces closer than a step still part.
         occlusion_margin_learned: learn a factor on that margin (lens; 1 at the start, the
             same for every band): how far apart in CoC two pixels may be and still be one
             surface depends on the data (how its depth was made, how its surfaces slope).
@@ -156,8 +164,9 @@ class ModelConfig:
     occlusion_margin_px: float = 2.0
     occlusion_margin_rel: float = 0.0
     occlusion_margin_learned: bool = True
-    occlusion_margin_step: bool = True
+    occlusion_margin_step: bool = False
     occlusion_margin_slope: bool = True
+    occlusion_source_coc: bool = True
     fill: str = "background"
     surface_fill: bool = True
     band_blend: str = "hat"
@@ -191,6 +200,8 @@ class ModelConfig:
             raise ValueError(f"model.occlusion_margin_step must be true or false, got {self.occlusion_margin_step!r}")
         if not isinstance(self.occlusion_margin_slope, bool):
             raise ValueError(f"model.occlusion_margin_slope must be true or false, got {self.occlusion_margin_slope!r}")
+        if not isinstance(self.occlusion_source_coc, bool):
+            raise ValueError(f"model.occlusion_source_coc must be true or false, got {self.occlusion_source_coc!r}")
         if not isinstance(self.surface_fill, bool):
             raise ValueError(f"model.surface_fill must be true or false, got {self.surface_fill!r}")
         if not isinstance(self.field_flow, bool):

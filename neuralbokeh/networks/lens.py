@@ -116,6 +116,9 @@ FLOW_MIN_PX = 0.25
 # the surface fill's share at the start (model.surface_fill): nearly the surface's own blurred light,
 # what the optics says is behind a sharp foreground, with room for the data to say otherwise
 SURFACE_FILL_START = 0.95
+# the least coverage that divides a band's carried source offsets (model.occlusion_source_coc):
+# where a band brings less light than this, its mean source CoC is not read from rounding noise
+SOURCE_COC_MIN_COVER = 1e-4
 
 
 def _gate(pos: torch.Tensor, n: int) -> torch.Tensor:
@@ -151,11 +154,30 @@ def coc_slope(coc: torch.Tensor) -> torch.Tensor:
     return torch.sqrt(gx * gx + gy * gy)
 
 
-def bucket_weights(band_coc: float, receiver_coc: torch.Tensor, margin: float | torch.Tensor) -> torch.Tensor:
+def source_coc_ranges(plan: BandPlan) -> dict[int, tuple[float, float]]:
+    """``{n: (low, high)}``: the |CoC| (px) of band ``n``'s sources less its centre's. Its hat
+    reaches the neighbouring centres; the last band also takes every larger CoC (high = inf)."""
+    d = [float(v) for v in plan.diameters]
+    return {n: (d[n - 1] - d[n], d[n + 1] - d[n] if n < plan.blocks else math.inf) for n in range(1, plan.blocks + 1)}
+
+
+def mean_source_coc(band_coc: float, carried: torch.Tensor, cover: torch.Tensor, span: tuple[float, float]) -> torch.Tensor:
+    """The mean signed CoC (px) of the sources of a band's light at each receiver ``(M, H, W)``:
+    the band's centre ``band_coc`` plus the scattered offsets ``carried`` ``(M, H, W)`` over the
+    light's coverage ``cover`` ``(M, H, W)`` (both by the green channel's kernel), within ``span``
+    (:func:`source_coc_ranges`, in |CoC|). Where the band brings almost no light (coverage
+    below ``SOURCE_COC_MIN_COVER``) the offsets are divided by that floor: the light weighs as little."""
+    sign = 1.0 if band_coc > 0 else -1.0
+    offset = carried / cover.clamp_min(SOURCE_COC_MIN_COVER)
+    return band_coc + sign * (sign * offset).clamp(*span)
+
+
+def bucket_weights(band_coc: float | torch.Tensor, receiver_coc: torch.Tensor, margin: float | torch.Tensor) -> torch.Tensor:
     """Soft (near, same, far) weights ``(3, ...)`` of light from a band at signed CoC ``band_coc``
-    arriving at pixels whose own signed CoC is ``receiver_coc`` (px; negative = in front), each
-    ramp ``margin`` px wide (> 0; a scalar tensor when learned, or one per receiver, shaped as
-    ``receiver_coc``)."""
+    (its centre, or one per receiver shaped as ``receiver_coc``: the light's mean source CoC,
+    :func:`mean_source_coc`) arriving at pixels whose own signed CoC is ``receiver_coc`` (px;
+    negative = in front), each ramp ``margin`` px wide (> 0; a scalar tensor when learned, or
+    one per receiver, shaped as ``receiver_coc``)."""
     delta = band_coc - receiver_coc  # < 0: the source is nearer than the receiver
     near = ((-delta - margin) / margin).clamp(0.0, 1.0)
     far = ((delta - margin) / margin).clamp(0.0, 1.0)
@@ -269,7 +291,7 @@ def _prior_shape(cfg: Any, aperture: dict | None) -> Aperture:
 
 
 def _scatter(feats: torch.Tensor, kern: torch.Tensor, which: torch.Tensor, s: int, extra: list[torch.Tensor] | tuple = (),
-             flow: torch.Tensor | None = None) -> torch.Tensor:
+             flow: torch.Tensor | None = None, moment: torch.Tensor | None = None) -> torch.Tensor:
     """(colour x gate, gate) ``(M, 4, win, win)`` scattered by the kernels ``kern[which]``
     (``(tiles, 3, k, k)``): ``(M, 6, win, win)`` (colour, per-channel coverage), 'same' size,
     on a grid ``s`` times coarser when ``s > 1``. Each further kernel of ``extra`` (shaped as
@@ -277,8 +299,11 @@ def _scatter(feats: torch.Tensor, kern: torch.Tensor, which: torch.Tensor, s: in
     channels of ``feats`` ``(M, 4 + 4 len(extra), win, win)``, added. ``flow`` ``(M, 2, win,
     win)`` px (``model.field_flow``): the features are first moved by it
     (:func:`_flow_where_it_moves`), on the coarse grid when ``s > 1`` (the flow box-averaged as
-    the features, in coarse px)."""
+    the features, in coarse px). ``moment`` ``(M, 1, win, win)`` (``model.occlusion_source_coc``):
+    scattered as the features by the green channel's kernel alone, a seventh output channel."""
     win = feats.shape[-1]
+    if moment is not None:  # the last channel, scattered by the green channel's kernel
+        feats = torch.cat([feats, moment], dim=1)
     moves = None if flow is None else flow.abs().flatten(1).amax(dim=1) >= FLOW_MIN_PX
     if s > 1:
         size = -(-win // s) * s
@@ -296,6 +321,10 @@ def _scatter(feats: torch.Tensor, kern: torch.Tensor, which: torch.Tensor, s: in
     for i, kn in enumerate([kern, *extra]):
         fk = torch.fft.rfft2(kn, s=(fs, fs))[which]  # (M, 3, ...) per tile
         prod = prod + torch.cat([fx[:, 4 * i : 4 * i + 3] * fk, fx[:, 4 * i + 3 : 4 * i + 4] * fk], dim=1)  # (M, 6, ...)
+        if i == 0 and moment is not None:  # by the green channel's kernel, whose coverage divides it out
+            carried = fx[:, -1:] * fk[:, 1:2]
+    if moment is not None:
+        prod = torch.cat([prod, carried], dim=1)  # (M, 7, ...)
     out = torch.fft.irfft2(prod, s=(fs, fs))[..., k // 2 : k // 2 + n, k // 2 : k // 2 + n]  # 'same'
     if s > 1:
         out = F.interpolate(out, scale_factor=s, mode="bilinear", align_corners=False)[..., :win, :win]
@@ -887,13 +916,20 @@ class LensBokeh(nn.Module):
                 # the CoC radius (the channels' mean, point-reflected in front) x the offset
                 flow = None if offsets is None else self.gain_slopes(float(diameters[n]))[side].mean() * offsets[which, side]
                 extra = ([] if slope is None else [slope[:, side]]) + ([] if grad is None else [grad[:, 0, side], grad[:, 1, side]])
-                out = _scatter(feats, kern[:, side], which, scales.get(n, 1), extra, flow)
+                moment = None
+                if cfg.occlusion_source_coc:  # each source's CoC from the band's centre, carried with its light
+                    moment = w * (coc_flat[idx].unsqueeze(1) - sign * float(diameters[n]))
+                out = _scatter(feats, kern[:, side], which, scales.get(n, 1), extra, flow, moment)
+                band_coc = sign * float(diameters[n])
+                if moment is not None:
+                    band_coc = mean_source_coc(band_coc, out[:, 6], out[:, 4], source_coc_ranges(plan)[n])
+                    out = out[:, :6]
                 if grad is not None:  # coverage is geometric: divided by a uniform field's light, as the reference scatter's
                     out = torch.cat([out[:, :3], out[:, 3:] / self.colour_gains(drift[which, side], float(diameters[n]), side)], 1)
                 margin = self.occlusion_margin(float(diameters[n]), plan.band_step_px(n))
                 if slope_flat is not None:  # the receiver's own surface's CoC change across the band's reach
                     margin = torch.maximum(slope_flat[idx] * (0.5 * float(diameters[n])), torch.as_tensor(margin, dtype=x.dtype))
-                bw = bucket_weights(sign * float(diameters[n]), coc_flat[idx], margin)
+                bw = bucket_weights(band_coc, coc_flat[idx], margin)
                 contrib = bw.permute(1, 0, 2, 3).unsqueeze(2) * out.unsqueeze(1)  # (M, 3, 6, win, win)
                 # one band at a time: memory stays O(image), not O(image x bands); in place, so no
                 # band copies the whole accumulator
