@@ -493,7 +493,7 @@ def test_a_checkpoint_from_before_the_near_focus_lattice_keeps_its_uniform_bands
 def test_a_margin_that_grows_with_the_band_and_a_pixel_blur_export_with_parity(busy_checkpoint, busy_onnx, tmp_path, option):
     """``occlusion_margin_rel``: each band's buckets ramp over ``max(margin_px, rel d_n)``, a
     constant of the band in the graph as in PyTorch; ``margin_learned``: so is the learned factor
-    on it; ``margin_step``: a learned factor under the lattice's step, which floors it;
+    on it; ``margin_step``: the step floor turned on, under which a learned factor lies;
     ``no_margin_slope``: the default's margin from each receiver's CoC slope (made in the graph
     from the CoC input; the calibration inputs' CoC is a smooth field), left out;
     ``no_source_coc``: the default's carried source CoC, left out. ``pixel_blur``: the kernels the graph holds
@@ -548,9 +548,10 @@ def test_a_margin_that_grows_with_the_band_and_a_pixel_blur_export_with_parity(b
 
 
 def test_an_export_may_choose_its_tiles_and_only_the_field_sampling_changes(busy_checkpoint, tmp_path):
-    """Tile cores are an export setting: with one pupil over the whole sensor (and each band's light
-    at its centre's CoC) a file with larger tiles renders what the trained tiles render; with a field-dependent pupil it samples the field
-    at fewer places and differs, while matching its own PyTorch model (the export's parity)."""
+    """Tile cores are an export setting: with one pupil over the whole sensor (and each band's
+    light compared at its centre's CoC) a file with larger tiles renders what the trained tiles
+    render; with a field-dependent pupil it samples the field at fewer places and differs, while
+    matching its own PyTorch model (the export's parity)."""
     data = load_checkpoint(busy_checkpoint)
     # one pupil everywhere: no field corrections, the cat-eye's circle left where it is on the axis
     still = {"pupil_field": lambda v: torch.zeros_like(v), "vignette": lambda v: torch.cat([torch.zeros(2), v[2:]])}
@@ -558,8 +559,8 @@ def test_an_export_may_choose_its_tiles_and_only_the_field_sampling_changes(busy
     # on the lattice uniform in the CoC, whose last kernel (9 px) fits the fixture's 4 px overlap:
     # the default lattice's 13 px kernels (two more bands, each block 2n + 1 px) carry their
     # pupils' 1e-3 floor past a window's edge, and what is lost there differs with the tiles (3.4e-5).
-    # Without the carried source CoC: a mean over each tile's own sources, it parts nearer and
-    # farther light by how the tiles pool them (7e-3 here, on random depths)
+    # Without the carried source CoC either: it is a mean over each tile's own sources, which
+    # other tiles pool otherwise (with it the files differ by 7e-3 here, on random depths)
     flat["model_config"] = {**data["model_config"], "near_focus_px": 0.0, "blocks": 4, "occlusion_source_coc": False}
     save_checkpoint(tmp_path / "flat.pt", {k: v for k, v in flat.items() if k not in ("format", "format_version", "package_version")})
     model, _ = load_model(busy_checkpoint)

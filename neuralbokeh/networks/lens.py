@@ -880,6 +880,7 @@ class LensBokeh(nn.Module):
             frame_slope = coc_slope(x[:, 3:] * float(self.contract.coc_scale_px))
             slope_flat = tile(frame_slope, layout).reshape(b * n_t, win, win)
         rgb_flat = rgb.reshape(b * n_t, 3, win, win)
+        spans = source_coc_ranges(plan) if cfg.occlusion_source_coc else None
         scales = scales or {}
         hermite = cfg.band_blend == "hermite"
         for n in range(1, blocks + 1):
@@ -922,7 +923,7 @@ class LensBokeh(nn.Module):
                 out = _scatter(feats, kern[:, side], which, scales.get(n, 1), extra, flow, moment)
                 band_coc = sign * float(diameters[n])
                 if moment is not None:
-                    band_coc = mean_source_coc(band_coc, out[:, 6], out[:, 4], source_coc_ranges(plan)[n])
+                    band_coc = mean_source_coc(band_coc, out[:, 6], out[:, 4], spans[n])
                     out = out[:, :6]
                 if grad is not None:  # coverage is geometric: divided by a uniform field's light, as the reference scatter's
                     out = torch.cat([out[:, :3], out[:, 3:] / self.colour_gains(drift[which, side], float(diameters[n]), side)], 1)
