@@ -33,6 +33,9 @@ SILHOUETTE_PX = 1
 LEGACY_DEFAULTS = {"near_focus_px": 0.0, "pixel_blur": False, "surface_fill": False, "occlusion_margin_learned": False,
                    "occlusion_margin_step": False, "occlusion_margin_slope": False, "occlusion_source_coc": False, "field_flow": False,
                    "field_gradient": False}
+# the switches: each must be true or false
+BOOLEAN_FIELDS = ("vignetting", "occlusion_margin_learned", "occlusion_margin_step", "occlusion_margin_slope", "occlusion_source_coc",
+                  "surface_fill", "field_flow", "field_gradient", "pixel_blur")
 KERNEL_SIZES = ("growing", "fixed3")
 TILINGS = ("overlap", "none", "no_overlap")
 HEADS = ("identity", "paper")
@@ -181,39 +184,24 @@ class ModelConfig:
             v = getattr(self, name)
             if not isinstance(v, int) or v < 1:
                 raise ValueError(f"model.{name} must be an integer >= 1, got {v!r}")
+        for name in BOOLEAN_FIELDS:
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"model.{name} must be true or false, got {getattr(self, name)!r}")
         if self.blocks != "auto" and (isinstance(self.blocks, bool) or not isinstance(self.blocks, int) or self.blocks < 0):
             raise ValueError(f"model.blocks must be an integer >= 0 or 'auto', got {self.blocks!r}")
         if not isinstance(self.overlap, int) or self.overlap < 0 or 2 * self.overlap > self.tile:
             raise ValueError(f"model.overlap must be an integer with 0 <= 2 * overlap <= tile ({self.tile}), got {self.overlap!r}")
         if isinstance(self.field_grid, bool) or not isinstance(self.field_grid, int) or self.field_grid < 1:
             raise ValueError(f"model.field_grid must be an integer >= 1, got {self.field_grid!r}")
-        if not isinstance(self.vignetting, bool):
-            raise ValueError(f"model.vignetting must be true or false, got {self.vignetting!r}")
         if not isinstance(self.pupil_size, int) or self.pupil_size < 4:
             raise ValueError(f"model.pupil_size must be an integer >= 4, got {self.pupil_size!r}")
         a = self.near_focus_px
         if isinstance(a, bool) or not (isinstance(a, (int, float)) and math.isfinite(a) and a >= 0):
             raise ValueError(f"model.near_focus_px must be a finite number >= 0 px, got {a!r}")
-        if not isinstance(self.occlusion_margin_learned, bool):
-            raise ValueError(f"model.occlusion_margin_learned must be true or false, got {self.occlusion_margin_learned!r}")
-        if not isinstance(self.occlusion_margin_step, bool):
-            raise ValueError(f"model.occlusion_margin_step must be true or false, got {self.occlusion_margin_step!r}")
-        if not isinstance(self.occlusion_margin_slope, bool):
-            raise ValueError(f"model.occlusion_margin_slope must be true or false, got {self.occlusion_margin_slope!r}")
-        if not isinstance(self.occlusion_source_coc, bool):
-            raise ValueError(f"model.occlusion_source_coc must be true or false, got {self.occlusion_source_coc!r}")
-        if not isinstance(self.surface_fill, bool):
-            raise ValueError(f"model.surface_fill must be true or false, got {self.surface_fill!r}")
-        if not isinstance(self.field_flow, bool):
-            raise ValueError(f"model.field_flow must be true or false, got {self.field_flow!r}")
-        if not isinstance(self.field_gradient, bool):
-            raise ValueError(f"model.field_gradient must be true or false, got {self.field_gradient!r}")
         if self.field_gradient and self.field_flow:
             raise ValueError("model.field_flow and model.field_gradient are both true: the gradient (the default) already gives "
                              "each pixel its own pupil's blur, which the flow would move again; set model.field_gradient = false "
                              "to use the flow, or model.field_flow = false")
-        if not isinstance(self.pixel_blur, bool):
-            raise ValueError(f"model.pixel_blur must be true or false, got {self.pixel_blur!r}")
         v = self.pixel_blur_px2
         if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v) and abs(v) < PIXEL_BLUR_MAX_PX2):
             raise ValueError(f"model.pixel_blur_px2 must be a number in (-{PIXEL_BLUR_MAX_PX2}, {PIXEL_BLUR_MAX_PX2}) px^2, got {v!r}")
