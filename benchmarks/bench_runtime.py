@@ -219,9 +219,10 @@ def worker(args: argparse.Namespace) -> None:
     print(json.dumps({"ms": 1000.0 * statistics.median(times), "rss_mb": _peak_rss_mb()}))
 
 
-def alternating_ms(models: dict, aif: np.ndarray, coc: np.ndarray, repeats: int) -> tuple[dict[str, float], dict[str, np.ndarray]]:
-    """Median ms of ``render_coc(aif, coc)`` per model, the renders alternating between the models
-    (a drift of the machine's speed hits all alike), after one warm-up each; and the warm-up outputs."""
+def alternating_times(models: dict, aif: np.ndarray, coc: np.ndarray, repeats: int) -> tuple[dict[str, list[float]], dict[str, np.ndarray]]:
+    """The ms of each ``render_coc(aif, coc)`` per model, ``repeats`` rounds in which every model
+    renders once (a drift of the machine's speed hits a round's renders alike), after one
+    warm-up each; and the warm-up outputs."""
     outs = {name: m.render_coc(aif, coc) for name, m in models.items()}
     times: dict[str, list[float]] = {name: [] for name in models}
     for _ in range(repeats):
@@ -229,6 +230,12 @@ def alternating_ms(models: dict, aif: np.ndarray, coc: np.ndarray, repeats: int)
             t = time.perf_counter()
             m.render_coc(aif, coc)
             times[name].append(1000 * (time.perf_counter() - t))
+    return times, outs
+
+
+def alternating_ms(models: dict, aif: np.ndarray, coc: np.ndarray, repeats: int) -> tuple[dict[str, float], dict[str, np.ndarray]]:
+    """Median ms per model of :func:`alternating_times`' renders, and the warm-up outputs."""
+    times, outs = alternating_times(models, aif, coc, repeats)
     return {name: statistics.median(v) for name, v in times.items()}, outs
 
 

@@ -488,15 +488,16 @@ def test_a_checkpoint_from_before_the_near_focus_lattice_keeps_its_uniform_bands
     assert np.abs(uniform - _run_onnx(busy_onnx, x[:, :3].numpy(), x[:, 3:].numpy())).max() > 1e-3
 
 
-@pytest.mark.parametrize("option", ["margin_rel", "margin_learned", "margin_step", "no_margin_slope", "no_source_coc", "pixel_blur",
-                                    "surface_fill"])
+@pytest.mark.parametrize("option", ["margin_rel", "margin_learned", "margin_step", "no_margin_slope", "no_source_coc", "source_coc_grid1",
+                                    "pixel_blur", "surface_fill"])
 def test_a_margin_that_grows_with_the_band_and_a_pixel_blur_export_with_parity(busy_checkpoint, busy_onnx, tmp_path, option):
     """``occlusion_margin_rel``: each band's buckets ramp over ``max(margin_px, rel d_n)``, a
     constant of the band in the graph as in PyTorch; ``margin_learned``: so is the learned factor
     on it; ``margin_step``: the step floor turned on, under which a learned factor lies;
     ``no_margin_slope``: the default's margin from each receiver's CoC slope (made in the graph
     from the CoC input; the calibration inputs' CoC is a smooth field), left out;
-    ``no_source_coc``: the default's carried source CoC, left out. ``pixel_blur``: the kernels the graph holds
+    ``no_source_coc``: the default's carried source CoC, left out; ``source_coc_grid1``: carried
+    on the light's own grid, not on one twice as coarse (the default). ``pixel_blur``: the kernels the graph holds
     are the module's, blurred. ``surface_fill``: its learned share, a constant of the graph.
     Each changes the output."""
     data = load_checkpoint(busy_checkpoint)
@@ -508,6 +509,9 @@ def test_a_margin_that_grows_with_the_band_and_a_pixel_blur_export_with_parity(b
     elif option == "no_source_coc":
         assert data["model_config"]["occlusion_source_coc"]  # the default
         data["model_config"] = {**data["model_config"], "occlusion_source_coc": False}
+    elif option == "source_coc_grid1":
+        assert data["model_config"]["occlusion_source_coc_grid"] == 2  # the default
+        data["model_config"] = {**data["model_config"], "occlusion_source_coc_grid": 1}
     elif option in ("margin_learned", "margin_step"):
         assert data["model_config"]["occlusion_margin_learned"] and "margin_scale" in data["model_state"]  # the default
         data["model_config"] = {**data["model_config"], "occlusion_margin_step": option == "margin_step"}
@@ -534,6 +538,8 @@ def test_a_margin_that_grows_with_the_band_and_a_pixel_blur_export_with_parity(b
         assert not model.config.occlusion_margin_slope
     elif option == "no_source_coc":
         assert not model.config.occlusion_source_coc
+    elif option == "source_coc_grid1":
+        assert model.config.occlusion_source_coc_grid == 1
     elif option == "surface_fill":
         assert float(model.surface_fill_share().detach()) == pytest.approx(0.3)
     else:

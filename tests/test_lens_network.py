@@ -561,20 +561,22 @@ def _bucket_cover(model, linear, coc_px):
     return acc[0, 0, :, 3:6].mean(1)[:, o:-o, o:-o].double()
 
 
-def test_the_carried_source_coc_keeps_a_plane_whole_and_parts_layers_closer_than_a_step():
+@pytest.mark.parametrize("grid", [2, 1])
+def test_the_carried_source_coc_keeps_a_plane_whole_and_parts_layers_closer_than_a_step(grid):
     """``occlusion_source_coc`` (the default, without the step floor) with a margin (0.5 px) under
     the lattice's step (2 px): a plane facing the camera midway between two band centres (6 px, between 5 and 7)
     stays one surface, which the band centres alone split into nearer and farther halves. Two
     planes 1.2 px apart (5.4 px left of column 16, 6.6 right): the nearer one's light on the first
     farther pixel is nearer light (a disk 5.4 px wide covers about a third of it), where the step
-    floor holds it all the same; and away from the edge the farther plane's own light is not."""
+    floor holds it all the same; and away from the edge the farther plane's own light is not. So
+    on the default's grid twice as coarse as the light's (``grid`` 2) as on the light's own (1)."""
     g = torch.Generator().manual_seed(4)
     img = 0.1 + torch.rand(1, 3, 32, 32, generator=g, dtype=torch.float64)
     plane = torch.full((1, 1, 32, 32), 6.0, dtype=torch.float64)
     two = torch.full((1, 1, 32, 32), 6.6, dtype=torch.float64)
     two[..., :16] = 5.4
     kw = dict(size=32, tile=32, overlap=8, occlusion_margin_px=0.5)
-    carry = _model(**kw)  # the default
+    carry = _model(occlusion_source_coc_grid=grid, **kw)
     centres = _model(occlusion_source_coc=False, **kw)
     floor = _model(occlusion_source_coc=False, occlusion_margin_step=True, **kw)
     whole = _bucket_cover(carry, img, plane)
@@ -582,7 +584,7 @@ def test_the_carried_source_coc_keeps_a_plane_whole_and_parts_layers_closer_than
     split = _bucket_cover(centres, img, plane)
     assert float(split[0, 8:24, 8:24].min()) > 0.45 and float(split[2, 8:24, 8:24].min()) > 0.45  # measured 0.5 each
     near = _bucket_cover(carry, img, two)[0, 8:24]
-    assert float(near[:, 16].min()) > 0.2 and float(near[:, 20:].max()) < 1e-6  # measured 0.29 and 0
+    assert float(near[:, 16].min()) > 0.2 and float(near[:, 20:].max()) < 1e-6  # measured 0.25 (grid 2), 0.29 (1) and 0
     assert float(_bucket_cover(floor, img, two)[0].max()) < 1e-6
     assert float(_bucket_cover(centres, img, two)[0, 8:24, 20:].min()) > 0.15  # the plane's own light, nearer: 0.2
 

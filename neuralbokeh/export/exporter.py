@@ -371,8 +371,10 @@ class _LensExport:
             layout = m.config.layout(*m.contract.size)
             pupils = m.tile_pupils(layout, *m.contract.size, window)[0]
             drift, rows, cols = (t[0].double() for t in m.drift_lattice(*m.contract.size, window))
-            band_kernels = {n: reduce_kernel(m.kernels(n, pupils, float(d[n])).double(), self.scales[n]).numpy()
-                            for n in range(1, m.config.blocks + 1)}
+            full = {n: m.kernels(n, pupils, float(d[n])).double() for n in range(1, m.config.blocks + 1)}
+            band_kernels = {n: reduce_kernel(v, self.scales[n]).numpy() for n, v in full.items()}
+            carry_kernels = None if not m.config.occlusion_source_coc else {  # the green channel's, on the carry's grid
+                n: reduce_kernel(v[:, :, 1], self.scales[n] * m.config.occlusion_source_coc_grid).numpy() for n, v in full.items()}
             slopes = {n: m.gain_slopes(float(d[n])).double().numpy() for n in range(1, m.config.blocks + 1)}
             margins = {n: float(m.occlusion_margin(float(d[n]), self.plan.band_step_px(n))) for n in range(1, m.config.blocks + 1)}
             kernel_slopes = None if m.config.band_blend != "hermite" else {
@@ -399,7 +401,7 @@ class _LensExport:
         share = None if m.surface_fill is None else float(m.surface_fill_share().detach())
         return build_lens_graph(band_kernels, self.plan, m.config, m.contract, fp16, opset, props, self.scales,
                                 self.spec.rows, flow, gain, kernel_slopes, share, margins=margins, centroids=centroids,
-                                gradients=gradients)
+                                gradients=gradients, carry_kernels=carry_kernels)
 
     def reference(self, x: torch.Tensor, active: torch.Tensor) -> torch.Tensor:
         """The PyTorch function of the exported kernels (coarse grids included) on the

@@ -364,11 +364,66 @@ def _pixel_centres(win: int) -> np.ndarray:
     return np.stack(np.broadcast_arrays(c[None, :], c[:, None]), axis=-1)[None].astype(np.float32)
 
 
+def _on_grid(g: Nodes, x: str, scale: int, win: int, warp: tuple[str, float] | None) -> str:
+    """:func:`~neuralbokeh.networks.lens._on_grid`, op for op: ``x`` ``(B, C, win, win)`` box-averaged
+    onto a grid ``scale`` times coarser, then sampled at ``p - radius x offset`` there (``warp``:
+    (the offsets ``(1, 2, win, win)``, the CoC radius), box-averaged as ``x``), or not (None)."""
+    n_px = -(-win // scale)
+    offsets = None if warp is None else warp[0]
+    if scale > 1:
+        extra = n_px * scale - win
+        pool = dict(kernel_shape=[scale, scale], strides=[scale, scale], pads=[0, 0, extra, extra], count_include_pad=1)
+        x = g.op("AveragePool", x, **pool)
+        if offsets is not None:
+            offsets = g.op("AveragePool", offsets, **pool)
+    if warp is None:
+        return x
+    # flow_warp on this grid: its pixel centres (align_corners=False) minus the flow in its px
+    moved = g.op("Mul", g.op("Transpose", offsets, perm=[0, 2, 3, 1]), g.c(f"to_grid{scale}", -2.0 * warp[1] / (scale * n_px)))
+    grid = g.op("Add", g.c(f"centres{n_px}", _pixel_centres(n_px)), moved)
+    batch = g.op("Concat", g.op("Shape", x, end=1), g.c(f"grid_tail{n_px}", [n_px, n_px, 2], np.int64), axis=0)
+    return g.op("GridSample", x, g.op("Expand", grid, batch), mode="bilinear", padding_mode="border", align_corners=0)
+
+
+def _off_grid(g: Nodes, x: str, scale: int, win: int) -> str:
+    """A grid ``scale`` times coarser back to the window's ``(B, C, win, win)`` (bilinear, half-pixel, then cut)."""
+    if scale == 1:
+        return x
+    up = g.op("Resize", x, "", g.c(f"scales{scale}", [1.0, 1.0, float(scale), float(scale)]), mode="linear",
+              coordinate_transformation_mode="half_pixel")
+    if win % scale == 0:  # the grid covers the window exactly: nothing to cut (a Slice would copy it all)
+        return up
+    return g.op("Slice", up, g.c("zeros2", [0, 0], np.int64), g.c(f"win2_{win}", [win, win], np.int64), g.c("axes_hw", [2, 3], np.int64))
+
+
+def _carried_coc(g: Nodes, gate: str, band_coc: float, carry: tuple[float, float, np.ndarray, int, str], win: int,
+                 warp: tuple[str, float] | None, rows: bool) -> str:
+    """:func:`~neuralbokeh.networks.lens._carried_coc`, op for op: the mean signed CoC (px) of a
+    band's sources at each receiver ``(B, 1, win, win)``, from the value ``gate`` times (each
+    source's CoC, 1), scattered by the green kernel on the carry's grid, where the mean is made.
+    ``carry``: (low, high) the offsets' range in |CoC| (px), the green channel's PSF ``(k, k)``
+    binned to that grid, the grid's factor, and the window's (CoC, 1) ``(B, 2, win, win)``. One
+    product and one pooling over the window's pixels and the upsampling's write, the rest on the
+    coarse grid."""
+    lo, hi, kernel, scale, coc_one = carry
+    carrier = Nodes(g.b, f"{g.stem}.carry")
+    carrier.nodes, g = g.nodes, carrier  # the band's branch: its constants under their own names
+    pair = _on_grid(g, g.op("Mul", gate, coc_one), scale, win, warp)
+    w = np.stack([kernel, kernel])[:, None, ::-1, ::-1]  # (2, 1, k, k) correlation weights
+    # plus the floor's light at the band's centre (mean_source_coc): sum g c + d f, sum g + f
+    bias = g.c("carry_bias", np.reshape([band_coc * SOURCE_COC_MIN_COVER, SOURCE_COC_MIN_COVER], (1, 2, 1, 1)))
+    out = g.op("Add", _correlate(g, pair, w, 2, -(-win // scale), False, rows), bias)
+    carried, cover = (g.b.fresh(f"{g.stem}.split") for _ in range(2))
+    g.nodes.append(helper.make_node("Split", [out], [carried, cover], name=carried, axis=1, num_outputs=2))
+    lo, hi = sorted(band_coc + band_coc / abs(band_coc) * v for v in (lo, hi))  # the centre plus its offsets, signed as it
+    return _off_grid(g, g.op("Clip", g.op("Div", carried, cover), g.c("carry_lo", lo), g.c("carry_hi", hi)), scale, win)
+
+
 def _band(b: GraphBuilder, k: int, n: int, side: int, pos: str, side_mask: str, src_mask: str, rgb: str, c: str,
           kernel: np.ndarray, flow: tuple[str, np.ndarray] | None, scale: int, win: int, band_coc: float, margin: float,
           fp16: bool, rows: bool, slope: np.ndarray | None = None, warp: tuple[str, float] | None = None,
           gradient: tuple[np.ndarray, tuple[str, str]] | None = None, receiver_slope: str | None = None,
-          carry: tuple[float, float] | None = None) -> onnx.GraphProto:
+          carry: tuple[float, float, np.ndarray, int, str] | None = None) -> onnx.GraphProto:
     """Then-branch: band ``n``'s contribution ``(1, B, 3, 6, win, win)``, (near, same, far) x (RGB, coverage),
     its convolution on a grid ``scale`` times coarser when ``scale > 1`` (``kernel`` is then
     the binned one, :func:`~neuralbokeh.networks.lens.reduce_kernel`), by rows
@@ -388,10 +443,11 @@ def _band(b: GraphBuilder, k: int, n: int, side: int, pos: str, side_mask: str, 
     features per channel, the gate times each offset, each scattered by its derivative
     (``model.field_gradient``). ``receiver_slope``: the window's cut of the frame's
     :func:`coc_slope_graph` (``model.occlusion_margin_slope``): each receiver's margin is at
-    least it times ``d / 2``. ``carry``: the range (px of |CoC| from the band's centre, low and
-    high) of its sources' CoC (``model.occlusion_source_coc``): each source's offset from the
-    centre is scattered with its light (by the green channel's kernel), and the buckets compare
-    the receiver with the light's mean source CoC."""
+    least it times ``d / 2``. ``carry`` (``model.occlusion_source_coc``): the range (px of |CoC|
+    from the band's centre, low and high) of its sources' CoC, the green channel's PSF ``(k,
+    k)`` binned to the carry's grid, that grid's factor and the window's (CoC, 1): each source's
+    CoC is scattered with its gate there (:func:`_carried_coc`), and the buckets compare the
+    receiver with the light's mean source CoC."""
     g = Nodes(GraphBuilder(b.count), f"t{k}.n{n}s{side}")
     # the gradient's features are colour times offsets of up to half a window, whose sums cancel
     # beside a highlight far below float16's precision (a 1e4 highlight missed the 2e-2 parity)
@@ -413,45 +469,12 @@ def _band(b: GraphBuilder, k: int, n: int, side: int, pos: str, side_mask: str, 
     else:  # interleaved per channel, e.g. (kernel, slope): (B, 6, P, win, win) -> (B, 6 P, win, win)
         pair = g.op("Concat", *(g.op("Unsqueeze", f, g.c("ax2", [2], np.int64)) for f in parts), axis=2)
         feats = g.op("Reshape", pair, g.c("pair_shape", [0, 6 * len(parts), win, win], np.int64))
-    # model.occlusion_source_coc: the value gate x each source's CoC less the band's, scattered alone
-    moment = None if carry is None else g.op("Mul", gates[0], g.op("Sub", c, g.c("band_coc", band_coc)))
-    offsets = None if warp is None else warp[0]
-    if scale > 1:
-        extra = -(-win // scale) * scale - win
-        pool = dict(kernel_shape=[scale, scale], strides=[scale, scale], pads=[0, 0, extra, extra], count_include_pad=1)
-        feats = g.op("AveragePool", feats, **pool)
-        moment = None if moment is None else g.op("AveragePool", moment, **pool)
-        if offsets is not None:  # the flow box-averaged as the features
-            offsets = g.op("AveragePool", offsets, **pool)
-    if warp is not None:  # flow_warp on this grid: its pixel centres (align_corners=False) minus the flow in its px
-        n_px = -(-win // scale)
-        moved = g.op("Mul", g.op("Transpose", offsets, perm=[0, 2, 3, 1]), g.c("to_grid", -2.0 * warp[1] / (scale * n_px)))
-        grid = g.op("Add", g.c("centres", _pixel_centres(n_px)), moved)
-        batch = g.op("Concat", g.op("Shape", feats, end=1), g.c("grid_tail", [n_px, n_px, 2], np.int64), axis=0)
-        grid = g.op("Expand", grid, batch)
-        feats = g.op("GridSample", feats, grid, mode="bilinear", padding_mode="border", align_corners=0)
-        if moment is not None:
-            moment = g.op("GridSample", moment, grid, mode="bilinear", padding_mode="border", align_corners=0)
+    feats = _on_grid(g, feats, scale, win, warp)
     psfs = [kernel] + ([] if slope is None else [slope]) + ([] if gradient is None else list(gradient[0]))
     w = np.stack([np.concatenate([f, f]) for f in psfs], axis=1)[:, :, ::-1, ::-1]  # (6, P, k, k), correlation weights
-    outs = [_correlate(g, feats, w, 6, -(-win // scale), fp16, rows)]
-    if moment is not None:  # by the green channel's kernel, whose coverage divides it out below
-        carrier = Nodes(g.b, f"{g.stem}.carry")
-        carrier.nodes = g.nodes  # the same branch: its constants under their own names
-        outs.append(_correlate(carrier, moment, kernel[1:2, None, ::-1, ::-1], 1, -(-win // scale), fp16, rows))
-    if scale > 1:
-        axes_hw, corner, size = g.c("axes_hw", [2, 3], np.int64), g.c("zeros2", [0, 0], np.int64), g.c("win2", [win, win], np.int64)
-        ups = [g.op("Resize", o, "", g.c("scales", [1.0, 1.0, float(scale), float(scale)]), mode="linear",
-                    coordinate_transformation_mode="half_pixel") for o in outs]
-        outs = [g.op("Slice", up, corner, size, axes_hw) for up in ups]
-    out = outs[0]
+    out = _off_grid(g, _correlate(g, feats, w, 6, -(-win // scale), fp16, rows), scale, win)
     ax1 = g.c("ax1", [1], np.int64)
-    band = g.c("band_coc", band_coc)
-    if moment is not None:  # the light's mean source CoC: the band's centre plus the mean carried offset, in its range
-        cover = g.op("Slice", out, g.c("c4", [4], np.int64), g.c("c5", [5], np.int64), ax1)  # green
-        mean = g.op("Div", outs[1], g.op("Max", cover, g.c("min_cover", SOURCE_COC_MIN_COVER)))
-        lo, hi = sorted(band_coc / abs(band_coc) * v for v in carry)  # signed as the band
-        band = g.op("Add", band, g.op("Min", g.op("Max", mean, g.c("carry_lo", lo)), g.c("carry_hi", hi)))
+    band = g.c("band_coc", band_coc) if carry is None else _carried_coc(g, gates[0], band_coc, carry, win, warp, rows)
     if flow is not None and gradient is not None:  # the coverage divided by the colour gain at the receiver
         gain = g.op("Sub", one, g.op("Mul", flow[0], g.c("slope", np.asarray(flow[1]).reshape(1, 3, 1, 1))))
         colour_out = g.op("Slice", out, g.c("c0", [0], np.int64), g.c("c3", [3], np.int64), ax1)
@@ -460,13 +483,12 @@ def _band(b: GraphBuilder, k: int, n: int, side: int, pos: str, side_mask: str, 
     delta = g.op("Sub", band, c)  # < 0: the band is nearer than the receiver
     zero = g.c("zero", 0.0)
     if receiver_slope is None:
-        m, inv = g.c("margin", margin), g.c("inv_margin", 1.0 / margin)
-        near = g.op("Clip", g.op("Mul", g.op("Sub", g.op("Neg", delta), m), inv), zero, one)
-        far = g.op("Clip", g.op("Mul", g.op("Sub", delta, m), inv), zero, one)
+        t = g.op("Mul", delta, g.c("inv_margin", 1.0 / margin))  # in margins
     else:  # one margin per receiver (LensBokeh.tile_accumulators)
-        m = g.op("Max", g.op("Mul", receiver_slope, g.c("half_d", 0.5 * abs(band_coc))), g.c("margin", margin))
-        near = g.op("Clip", g.op("Div", g.op("Sub", g.op("Neg", delta), m), m), zero, one)
-        far = g.op("Clip", g.op("Div", g.op("Sub", delta, m), m), zero, one)
+        t = g.op("Div", delta, g.op("Max", g.op("Mul", receiver_slope, g.c("half_d", 0.5 * abs(band_coc))), g.c("margin", margin)))
+    # bucket_weights' (-delta - m) / m and (delta - m) / m as -t - 1 and t - 1
+    near = g.op("Clip", g.op("Sub", g.op("Neg", t), one), zero, one)
+    far = g.op("Clip", g.op("Sub", t, one), zero, one)
     same = g.op("Sub", g.op("Sub", one, near), far)
     # one broadcast product (1, B, 3, 1) x (1, B, 1, 6) -> (1, B, 3, 6): written once, and as the
     # branch's output (a Reshape there would be a copy)
@@ -499,7 +521,8 @@ def _tile(b: GraphBuilder, k: int, cut: tuple[str, str, str | None, tuple[str, s
           scales: Mapping[int, int], src: np.ndarray, cfg: ModelConfig, contract: Contract, plan: BandPlan, fp16: bool,
           rows: bool, margins: Mapping[int, float], slopes: Mapping[int, np.ndarray] | None = None,
           centroids: tuple[str, np.ndarray, Mapping[int, np.ndarray], np.ndarray] | None = None,
-          gradients: tuple[Mapping[int, np.ndarray], np.ndarray] | None = None, coc_slopes: str | None = None) -> onnx.GraphProto:
+          gradients: tuple[Mapping[int, np.ndarray], np.ndarray] | None = None, coc_slopes: str | None = None,
+          carry_kernels: Mapping[int, np.ndarray] | None = None) -> onnx.GraphProto:
     """Then-branch: tile ``k``'s accumulators ``(B, 3, 6, win, win)``, flattened to ``(1, B 18 win^2)``,
     from its window of the inputs ``aif`` and ``coc`` (``cut``, :func:`_cut`: a tile that does not
     run cuts nothing); band ``n``, side ``s`` runs where ``band_active[k, n - 1, s]``. A
@@ -514,7 +537,9 @@ def _tile(b: GraphBuilder, k: int, cut: tuple[str, str, str | None, tuple[str, s
     ``gradients``: (``{n: (2, 2, 3, k, k)}`` (axis, side) the kernels' derivatives in the source
     position, ``(2,)`` the window's top-left corner less the tile's centre (x, y px;
     ``window_offsets_px``)) for ``model.field_gradient``, or None. ``coc_slopes``: the frame's
-    :func:`coc_slope_graph` ``(B, 1, H, W)`` (``model.occlusion_margin_slope``), or None."""
+    :func:`coc_slope_graph` ``(B, 1, H, W)`` (``model.occlusion_margin_slope``), or None.
+    ``carry_kernels``: ``{n: (2, k, k)}`` the green PSFs binned to the carried CoC's grid
+    (``model.occlusion_source_coc``), or None."""
     g = Nodes(GraphBuilder(b.count), f"t{k}")
     blocks, diameters = plan.blocks, plan.diameters
     win = src.shape[-1]
@@ -558,6 +583,9 @@ def _tile(b: GraphBuilder, k: int, cut: tuple[str, str, str | None, tuple[str, s
             offsets = [g.op("Slice", off, g.c(f"o{s}0", [2 * s], np.int64), g.c(f"o{s}1", [2 * s + 2], np.int64),
                             g.c("ax1", [1], np.int64)) for s in range(2)]
         carries = source_coc_ranges(plan)
+        coc_one = None  # the window's (CoC, 1) (B, 2, win, win): each band's carry is its gate times it
+        if carry_kernels is not None:
+            coc_one = g.op("Concat", c, g.op("Expand", g.c("one4", np.ones((1, 1, 1, 1))), g.op("Shape", c)), axis=1)
         for n in range(1, blocks + 1):
             for side, (mask, sign) in enumerate(((behind, 1.0), (front, -1.0))):
                 used = g.op("Gather", g.op("Gather", flags, g.c(f"n{n}_row", n - 1, np.int64)), g.c(f"side{side}", side, np.int64))
@@ -568,7 +596,8 @@ def _tile(b: GraphBuilder, k: int, cut: tuple[str, str, str | None, tuple[str, s
                              None if offsets is None or abs(centroids[2][n][side]) * centroids[3][side] < FLOW_MIN_PX
                              else (offsets[side], float(centroids[2][n][side])),
                              None if gradients is None else (gradients[0][n][:, side], pixel_offsets), receiver_slope,
-                             carries[n] if cfg.occlusion_source_coc else None)
+                             None if carry_kernels is None else
+                             (*carries[n], carry_kernels[n][side], scales.get(n, 1) * cfg.occlusion_source_coc_grid, coc_one))
                 skip = Nodes(GraphBuilder(g.b.count), f"t{k}.n{n}s{side}.skip")
                 empty = skip.op("Slice", base, skip.c("s0", [0], np.int64), skip.c("s0", [0], np.int64), skip.c("ax0", [0], np.int64))
                 else_graph = _branch(skip, empty, f"t{k}_band{n}_{side}_skip")
@@ -791,7 +820,8 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: Mod
                      surface_share: float | None = None, *, margins: Mapping[int, float],
                      centroids: tuple[tuple[np.ndarray, np.ndarray, np.ndarray], np.ndarray, Mapping[int, np.ndarray],
                                       np.ndarray] | None = None,
-                     gradients: Mapping[int, np.ndarray] | None = None) -> onnx.ModelProto:
+                     gradients: Mapping[int, np.ndarray] | None = None,
+                     carry_kernels: Mapping[int, np.ndarray] | None = None) -> onnx.ModelProto:
     """The full-image ONNX model of a ``LensBokeh``.
 
     Args:
@@ -824,11 +854,16 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: Mod
         gradients: ``model.field_gradient`` only (else None): ``{n: (tiles, 2, 2, 3, k, k)}``
             LensBokeh.kernel_gradients, binned as kernels; each source pixel's offset from its
             tile's centre (``LensBokeh.tile_offsets_px``) is made in the graph.
+        carry_kernels: ``model.occlusion_source_coc`` only (else None): ``{n: (tiles, 2, k, k)}``
+            the green channel's kernels binned by ``reduce_kernel`` to the carried CoC's grid,
+            ``model.occlusion_source_coc_grid`` times coarser than band n's.
     """
     if opset < 18:
         raise ValueError(f"the lens graph needs opset >= 18 (Col2Im), got {opset}")
     if (slopes is not None) != (cfg.band_blend == "hermite"):
         raise ValueError(f"model.band_blend is {cfg.band_blend!r}: kernel slopes are needed for 'hermite' and only there")
+    if (carry_kernels is not None) != cfg.occlusion_source_coc:
+        raise ValueError(f"model.occlusion_source_coc is {cfg.occlusion_source_coc}: its kernels are needed then and only then")
     scales = dict(scales or {})
     layout = cfg.layout(*contract.size)
     source_masks = layout.source_masks()
@@ -871,8 +906,9 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: Mod
         tile_slopes = None if slopes is None else {n: slopes[n][k] for n in slopes}
         tile_centroids = None if centroid_map is None else (centroid_map, centroids[1][k], centroids[2], centroids[3][k])
         tile_gradients = None if gradients is None else ({n: gradients[n][k] for n in gradients}, corners[k])
+        tile_carry = None if carry_kernels is None else {n: v[k] for n, v in carry_kernels.items()}
         then = _tile(b, k, cut, tile_kernels, tile_flow, scales, source_masks[k], cfg, contract, plan, fp16, rows, margins, tile_slopes,
-                     tile_centroids, tile_gradients, coc_slopes)
+                     tile_centroids, tile_gradients, coc_slopes, tile_carry)
         b.count += 10_000  # branch-local names stay unique across branches
         other = _idle(b, k, win)
         b.count += 10_000

@@ -32,7 +32,7 @@ SILHOUETTE_PX = 1
 # changed since: its network is rebuilt as it was trained
 LEGACY_DEFAULTS = {"near_focus_px": 0.0, "pixel_blur": False, "surface_fill": False, "occlusion_margin_learned": False,
                    "occlusion_margin_step": False, "occlusion_margin_slope": False, "occlusion_source_coc": False, "field_flow": False,
-                   "field_gradient": False}
+                   "field_gradient": False, "occlusion_source_coc_grid": 1}
 # the switches: each must be true or false
 BOOLEAN_FIELDS = ("vignetting", "occlusion_margin_learned", "occlusion_margin_step", "occlusion_margin_slope", "occlusion_source_coc",
                   "surface_fill", "field_flow", "field_gradient", "pixel_blur")
@@ -94,6 +94,10 @@ class ModelConfig:
             band's centre (:func:`~neuralbokeh.networks.lens.mean_source_coc`). A plane facing
             the camera then stays one surface under any margin, so the step floor is not
             needed, and surfaces closer than a step still part.
+        occlusion_source_coc_grid: the carried CoC is scattered on a grid this many times
+            coarser than its band's light (an integer >= 1; 1: the light's own grid). A mean
+            over a kernel's reach is smooth at that reach; at the light's own grid this scatter
+            is a seventh convolution per band.
         occlusion_margin_learned: learn a factor on that margin (lens; 1 at the start, the
             same for every band): how far apart in CoC two pixels may be and still be one
             surface depends on the data (how its depth was made, how its surfaces slope).
@@ -170,6 +174,7 @@ class ModelConfig:
     occlusion_margin_step: bool = False
     occlusion_margin_slope: bool = True
     occlusion_source_coc: bool = True
+    occlusion_source_coc_grid: int = 2
     fill: str = "background"
     surface_fill: bool = True
     band_blend: str = "hat"
@@ -180,9 +185,9 @@ class ModelConfig:
     field_gradient: bool = True
 
     def __post_init__(self) -> None:
-        for name in ("features", "tile", "fft_min_kernel", "fft_min_kernel_train"):
+        for name in ("features", "tile", "fft_min_kernel", "fft_min_kernel_train", "occlusion_source_coc_grid"):
             v = getattr(self, name)
-            if not isinstance(v, int) or v < 1:
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"model.{name} must be an integer >= 1, got {v!r}")
         for name in BOOLEAN_FIELDS:
             if not isinstance(getattr(self, name), bool):

@@ -116,8 +116,9 @@ FLOW_MIN_PX = 0.25
 # the surface fill's share at the start (model.surface_fill): nearly the surface's own blurred light,
 # what the optics says is behind a sharp foreground, with room for the data to say otherwise
 SURFACE_FILL_START = 0.95
-# the least coverage that divides a band's carried source offsets (model.occlusion_source_coc):
-# where a band brings less light than this, its mean source CoC is not read from rounding noise
+# the light at the band's centre added to a band's carried source CoCs (model.occlusion_source_coc):
+# where a band brings about this little light or less, its mean source CoC is not read from
+# rounding noise but leans to the centre
 SOURCE_COC_MIN_COVER = 1e-4
 
 
@@ -164,11 +165,12 @@ def source_coc_ranges(plan: BandPlan) -> dict[int, tuple[float, float]]:
 def mean_source_coc(band_coc: float, carried: torch.Tensor, cover: torch.Tensor, span: tuple[float, float]) -> torch.Tensor:
     """The mean signed CoC (px) of the sources of a band's light at each receiver ``(M, H, W)``:
     the band's centre ``band_coc`` plus the scattered offsets ``carried`` ``(M, H, W)`` over the
-    light's coverage ``cover`` ``(M, H, W)`` (both by the green channel's kernel), within ``span``
-    (:func:`source_coc_ranges`, in |CoC|). Where the band brings almost no light (coverage
-    below ``SOURCE_COC_MIN_COVER``) the offsets are divided by that floor: the light weighs as little."""
+    light's coverage ``cover`` ``(M, H, W)`` (both by the green channel's kernel) plus
+    ``SOURCE_COC_MIN_COVER``, within ``span`` (:func:`source_coc_ranges`, in |CoC|). The floor
+    weighs the band's centre in as that much light: where the band brings almost none, it is
+    the centre's CoC."""
     sign = 1.0 if band_coc > 0 else -1.0
-    offset = carried / cover.clamp_min(SOURCE_COC_MIN_COVER)
+    offset = carried / (cover + SOURCE_COC_MIN_COVER)
     return band_coc + sign * (sign * offset).clamp(*span)
 
 
@@ -290,30 +292,38 @@ def _prior_shape(cfg: Any, aperture: dict | None) -> Aperture:
     return aperture_from_dict(aperture["shape"])
 
 
-def _scatter(feats: torch.Tensor, kern: torch.Tensor, which: torch.Tensor, s: int, extra: list[torch.Tensor] | tuple = (),
-             flow: torch.Tensor | None = None, moment: torch.Tensor | None = None) -> torch.Tensor:
-    """(colour x gate, gate) ``(M, 4, win, win)`` scattered by the kernels ``kern[which]``
-    (``(tiles, 3, k, k)``): ``(M, 6, win, win)`` (colour, per-channel coverage), 'same' size,
-    on a grid ``s`` times coarser when ``s > 1``. Each further kernel of ``extra`` (shaped as
-    ``kern``: the Hermite blend's slope, the field gradient's x and y) scatters the next 4
-    channels of ``feats`` ``(M, 4 + 4 len(extra), win, win)``, added. ``flow`` ``(M, 2, win,
-    win)`` px (``model.field_flow``): the features are first moved by it
-    (:func:`_flow_where_it_moves`), on the coarse grid when ``s > 1`` (the flow box-averaged as
-    the features, in coarse px). ``moment`` ``(M, 1, win, win)`` (``model.occlusion_source_coc``):
-    scattered as the features by the green channel's kernel alone, a seventh output channel."""
+def _on_grid(feats: torch.Tensor, s: int, flow: torch.Tensor | None) -> torch.Tensor:
+    """``feats`` ``(M, C, win, win)`` box-averaged onto a grid ``s`` times coarser (padded to a
+    multiple of ``s``; unchanged when ``s = 1``), then moved by ``flow`` ``(M, 2, win, win)`` px
+    (:func:`_flow_where_it_moves`; box-averaged as the features, in coarse px), or not (None)."""
     win = feats.shape[-1]
-    if moment is not None:  # the last channel, scattered by the green channel's kernel
-        feats = torch.cat([feats, moment], dim=1)
     moves = None if flow is None else flow.abs().flatten(1).amax(dim=1) >= FLOW_MIN_PX
     if s > 1:
         size = -(-win // s) * s
         feats = F.avg_pool2d(F.pad(feats, (0, size - win, 0, size - win)), s)
         if moves is not None and bool(moves.any()):
             flow = F.avg_pool2d(F.pad(flow, (0, size - win, 0, size - win)), s) / s
-        kern = reduce_kernel(kern, s)
-        extra = [reduce_kernel(e, s) for e in extra]
-    if moves is not None:
-        feats = _flow_where_it_moves(feats, flow, moves)
+    return feats if moves is None else _flow_where_it_moves(feats, flow, moves)
+
+
+def _off_grid(out: torch.Tensor, s: int, win: int) -> torch.Tensor:
+    """A grid ``s`` times coarser ``(M, C, n, n)`` back to the window's ``(M, C, win, win)`` (bilinear, half-pixel)."""
+    if s == 1:
+        return out
+    return F.interpolate(out, scale_factor=s, mode="bilinear", align_corners=False)[..., :win, :win]
+
+
+def _scatter(feats: torch.Tensor, kern: torch.Tensor, which: torch.Tensor, s: int, extra: list[torch.Tensor] | tuple = (),
+             flow: torch.Tensor | None = None) -> torch.Tensor:
+    """(colour x gate, gate) ``(M, 4, win, win)`` scattered by the kernels ``kern[which]``
+    (``(tiles, 3, k, k)``): ``(M, 6, win, win)`` (colour, per-channel coverage), 'same' size,
+    on a grid ``s`` times coarser when ``s > 1``. Each further kernel of ``extra`` (shaped as
+    ``kern``: the Hermite blend's slope, the field gradient's x and y) scatters the next 4
+    channels of ``feats`` ``(M, 4 + 4 len(extra), win, win)``, added. ``flow`` ``(M, 2, win,
+    win)`` px (``model.field_flow``): the features are first moved by it (:func:`_on_grid`)."""
+    win = feats.shape[-1]
+    feats = _on_grid(feats, s, flow)
+    kern, extra = reduce_kernel(kern, s), [reduce_kernel(e, s) for e in extra]
     k, n = kern.shape[-1], feats.shape[-1]
     fs = next_fast_len(n + k - 1)
     fx = torch.fft.rfft2(feats, s=(fs, fs))
@@ -321,14 +331,27 @@ def _scatter(feats: torch.Tensor, kern: torch.Tensor, which: torch.Tensor, s: in
     for i, kn in enumerate([kern, *extra]):
         fk = torch.fft.rfft2(kn, s=(fs, fs))[which]  # (M, 3, ...) per tile
         prod = prod + torch.cat([fx[:, 4 * i : 4 * i + 3] * fk, fx[:, 4 * i + 3 : 4 * i + 4] * fk], dim=1)  # (M, 6, ...)
-        if i == 0 and moment is not None:  # by the green channel's kernel, whose coverage divides it out
-            carried = fx[:, -1:] * fk[:, 1:2]
-    if moment is not None:
-        prod = torch.cat([prod, carried], dim=1)  # (M, 7, ...)
     out = torch.fft.irfft2(prod, s=(fs, fs))[..., k // 2 : k // 2 + n, k // 2 : k // 2 + n]  # 'same'
-    if s > 1:
-        out = F.interpolate(out, scale_factor=s, mode="bilinear", align_corners=False)[..., :win, :win]
-    return out
+    return _off_grid(out, s, win)
+
+
+def _carried_coc(pair: torch.Tensor, kern: torch.Tensor, which: torch.Tensor, s: int, band_coc: float,
+                 span: tuple[float, float], flow: torch.Tensor | None = None) -> torch.Tensor:
+    """The mean signed CoC (px) of a band's sources at each receiver ``(M, win, win)``
+    (``model.occlusion_source_coc``): (gate x (source CoC - ``band_coc``), gate) ``pair`` ``(M, 2, win, win)``
+    scattered by the green channel's kernels ``kern[which]`` (``(tiles, 1, k, k)``, full
+    resolution) on a grid ``s`` times coarser, moved as :func:`_scatter`'s features; there
+    :func:`mean_source_coc` of the band at ``band_coc`` (px) within ``span``, brought back to the
+    window bilinearly. A mean over a kernel's reach changes little within a coarse pixel."""
+    win = pair.shape[-1]
+    x = _on_grid(pair, s, flow)
+    kern = reduce_kernel(kern, s)
+    k, n = kern.shape[-1], x.shape[-1]
+    fs = next_fast_len(n + k - 1)
+    prod = torch.fft.rfft2(x, s=(fs, fs)) * torch.fft.rfft2(kern, s=(fs, fs))[which]
+    out = torch.fft.irfft2(prod, s=(fs, fs))[..., k // 2 : k // 2 + n, k // 2 : k // 2 + n]  # 'same'
+    mean = mean_source_coc(band_coc, out[:, 0], out[:, 1], span)
+    return _off_grid(mean.unsqueeze(1), s, win)[:, 0]
 
 
 def flow_warp(feats: torch.Tensor, flow: torch.Tensor) -> torch.Tensor:
@@ -917,14 +940,14 @@ class LensBokeh(nn.Module):
                 # the CoC radius (the channels' mean, point-reflected in front) x the offset
                 flow = None if offsets is None else self.gain_slopes(float(diameters[n]))[side].mean() * offsets[which, side]
                 extra = ([] if slope is None else [slope[:, side]]) + ([] if grad is None else [grad[:, 0, side], grad[:, 1, side]])
-                moment = None
-                if cfg.occlusion_source_coc:  # each source's CoC from the band's centre, carried with its light
-                    moment = w * (coc_flat[idx].unsqueeze(1) - sign * float(diameters[n]))
-                out = _scatter(feats, kern[:, side], which, scales.get(n, 1), extra, flow, moment)
+                out = _scatter(feats, kern[:, side], which, scales.get(n, 1), extra, flow)
                 band_coc = sign * float(diameters[n])
-                if moment is not None:
-                    band_coc = mean_source_coc(band_coc, out[:, 6], out[:, 4], spans[n])
-                    out = out[:, :6]
+                if cfg.occlusion_source_coc:  # each source's CoC from the band's centre, carried with its light
+                    # offsets from the centre: the FFT's rounding is relative to the largest, and the
+                    # division by a coverage as small as the floor magnifies it
+                    pair = torch.cat([w * (coc_flat[idx].unsqueeze(1) - band_coc), w], dim=1)
+                    band_coc = _carried_coc(pair, kern[:, side, 1:2], which, scales.get(n, 1) * cfg.occlusion_source_coc_grid,
+                                            band_coc, spans[n], flow)
                 if grad is not None:  # coverage is geometric: divided by a uniform field's light, as the reference scatter's
                     out = torch.cat([out[:, :3], out[:, 3:] / self.colour_gains(drift[which, side], float(diameters[n]), side)], 1)
                 margin = self.occlusion_margin(float(diameters[n]), plan.band_step_px(n))
