@@ -398,9 +398,11 @@ def _off_grid(g: Nodes, x: str, scale: int, win: int) -> str:
 
 def _carried_coc(g: Nodes, gate: str, band_coc: float, carry: tuple[float, float, np.ndarray, int, str], win: int,
                  warp: tuple[str, float] | None, rows: bool) -> str:
-    """:func:`~neuralbokeh.networks.lens._carried_coc`, op for op: the mean signed CoC (px) of a
-    band's sources at each receiver ``(B, 1, win, win)``, from the value ``gate`` times (each
-    source's CoC, 1), scattered by the green kernel on the carry's grid, where the mean is made.
+    """:func:`~neuralbokeh.networks.lens._carried_coc`'s mean signed CoC (px) of a band's sources
+    at each receiver ``(B, 1, win, win)``, from the value ``gate`` times (each source's CoC, 1),
+    scattered by the green kernel on the carry's grid, where the mean is made. The module carries
+    offsets from the band's centre instead (its FFT rounds relative to the largest value); these
+    direct sums round relative to their own terms, so the CoC itself saves a node.
     ``carry``: (low, high) the offsets' range in |CoC| (px), the green channel's PSF ``(k, k)``
     binned to that grid, the grid's factor, and the window's (CoC, 1) ``(B, 2, win, win)``. One
     product and one pooling over the window's pixels and the upsampling's write, the rest on the
@@ -412,6 +414,7 @@ def _carried_coc(g: Nodes, gate: str, band_coc: float, carry: tuple[float, float
     w = np.stack([kernel, kernel])[:, None, ::-1, ::-1]  # (2, 1, k, k) correlation weights
     # plus the floor's light at the band's centre (mean_source_coc): sum g c + d f, sum g + f
     bias = g.c("carry_bias", np.reshape([band_coc * SOURCE_COC_MIN_COVER, SOURCE_COC_MIN_COVER], (1, 2, 1, 1)))
+    # float32 in a float16 export too: dividing by a coverage near the floor magnifies rounding
     out = g.op("Add", _correlate(g, pair, w, 2, -(-win // scale), False, rows), bias)
     carried, cover = (g.b.fresh(f"{g.stem}.split") for _ in range(2))
     g.nodes.append(helper.make_node("Split", [out], [carried, cover], name=carried, axis=1, num_outputs=2))
