@@ -96,8 +96,8 @@ class ModelConfig:
             needed, and surfaces closer than a step still part.
         occlusion_source_coc_grid: the carried CoC is scattered on a grid this many times
             coarser than its band's light (an integer >= 1; 1: the light's own grid). A mean
-            over a kernel's reach is smooth at that reach; at the light's own grid this scatter
-            is a seventh convolution per band.
+            over a kernel's reach is smooth at that reach; on the light's own grid the carry is
+            two more channels convolved at full resolution per band.
         occlusion_margin_learned: learn a factor on that margin (lens; 1 at the start, the
             same for every band): how far apart in CoC two pixels may be and still be one
             surface depends on the data (how its depth was made, how its surfaces slope).
