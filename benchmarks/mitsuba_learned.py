@@ -13,8 +13,8 @@
    ``--extra-test-scenes N`` adds N new scenes (indices ``--scenes`` .. ``--scenes + N - 1``, never
    trained on) to that clean set: six held-out scenes do not separate the best methods.
 3. ``--train-scenes N`` renders N more scenes at ``--spp`` for training only (the indices after the
-   clean set's extra ones) into ``<data>_train``: a lens learned from a few noisy renders fits
-   their noise (``docs/benchmarks.md``). The training set is then a folder of links,
+   clean set's extra ones) into ``<data>_train`` (what more training scenes change:
+   ``docs/benchmarks.md``, "More training scenes"). The training set is then a folder of links,
    ``<data>_trainset<N>``: the training split's scenes and these; the held-out split is
    unchanged (the evaluation's note that the model was trained with ``test_fraction`` 0 does
    not apply: no held-out scene is linked).
