@@ -96,13 +96,11 @@ def main() -> None:
     train_root, test_fraction = args.data, 0.25
     if args.train_scenes > 0:
         first = args.scenes + args.extra_test_scenes
+        new = range(first, first + args.train_scenes)
         extra_root = args.data.with_name(f"{args.data.name}_train")
-        run(*render(first + args.train_scenes), "--out", str(extra_root), "--spp", str(args.spp),
-            "--only", *map(str, range(first, first + args.train_scenes)))
+        run(*render(new.stop), "--out", str(extra_root), "--spp", str(args.spp), "--only", *map(str, new))
         train_root, test_fraction = args.data.with_name(f"{args.data.name}_trainset{args.train_scenes}"), 0.0
-        scenes = split_scenes(find_scenes(args.data), "train", 0.25, 0) + \
-            [extra_root / f"scene_{i:05d}" for i in range(first, first + args.train_scenes)]
-        link_scenes(train_root, scenes)
+        link_scenes(train_root, split_scenes(find_scenes(args.data), "train", 0.25, 0) + [extra_root / f"scene_{i:05d}" for i in new])
     run("train.py", "configs/quickstart.toml", "--overwrite", f"data.roots=['{train_root}']", f"data.test_fraction={test_fraction}",
         f"model.tile={args.size // 4}", f"model.overlap={args.size // 8}", f"train.loss_pool={args.loss_pool}", "train.steps=1000000",
         "train.lr_schedule='constant'", "train.ema_steps=100", "train.eval_every=1000000", "train.checkpoint_every=200",
