@@ -1,7 +1,7 @@
 """The learned lens on physically rendered data, where the layered scatter is only an approximation.
 
-    python benchmarks/mitsuba_learned.py [--scenes 24] [--size 128] [--minutes 15] [--spp 256] [--test-spp 2048]
-        [--extra-test-scenes 0] [--train-scenes 0] [--loss-pool 2] [KEY=VALUE ...]
+    python benchmarks/mitsuba_learned.py [--scenes 24] [--size 128] [--minutes 15] [--spp 256] [--test-spp 1024]
+        [--extra-test-scenes 18] [--train-scenes 48] [--loss-pool 2] [KEY=VALUE ...]
 
 1. Renders (once; finished scenes are skipped) a Mitsuba 3 focal-stack dataset of non-planar
    procedural scenes (tilted textured rectangles, spheres, boxes, HDR point lights; 7-blade
@@ -10,12 +10,12 @@
 2. Renders the held-out scenes again at ``--test-spp`` (the all-in-focus image at a quarter of
    it) into ``<data>_test<spp>``: at 256 spp the targets' noise (median 0.0125 RMS, tone-mapped
    display units) is as large as the differences between the best methods; 0 skips it.
-   ``--extra-test-scenes N`` adds N new scenes (indices ``--scenes`` .. ``--scenes + N - 1``, never
-   trained on) to that clean set: six held-out scenes do not separate the best methods.
-3. ``--train-scenes N`` renders N more scenes at ``--spp`` for training only (the indices after the
-   clean set's extra ones) into ``<data>_train`` (what more training scenes change:
-   ``docs/benchmarks.md``, "More training scenes"). The training set is then a folder of links,
-   ``<data>_trainset<N>``: the training split's scenes and these; the held-out split is
+   ``--extra-test-scenes N`` adds N new scenes (never trained on; the indices after the
+   training-only ones of 3.) to that clean set: six held-out scenes do not separate the best methods.
+3. ``--train-scenes N`` renders N more scenes at ``--spp`` for training only (indices ``--scenes``
+   .. ``--scenes + N - 1``) into ``<data>_train`` (what more training scenes change, and why
+   these defaults: ``docs/benchmarks.md``, "Twenty-four clean held-out scenes"). The training
+   set is then a folder of links, ``<data>_trainset<N>``: the training split's scenes and these; the held-out split is
    unchanged (the evaluation's note that the model was trained with ``test_fraction`` 0 does
    not apply: no held-out scene is linked).
 4. Trains the default network on the training split for ``--minutes`` (``configs/quickstart.toml``
@@ -66,10 +66,10 @@ def main() -> None:
     p.add_argument("--scenes", type=int, default=24)
     p.add_argument("--size", type=int, default=128)
     p.add_argument("--spp", type=int, default=256)
-    p.add_argument("--test-spp", type=int, default=2048, help="spp of the held-out scenes' clean render (0: none)")
-    p.add_argument("--extra-test-scenes", type=int, default=0,
+    p.add_argument("--test-spp", type=int, default=1024, help="spp of the held-out scenes' clean render (0: none)")
+    p.add_argument("--extra-test-scenes", type=int, default=18,
                    help="new scenes, never trained on, added to the clean held-out render (needs --test-spp > 0)")
-    p.add_argument("--train-scenes", type=int, default=0,
+    p.add_argument("--train-scenes", type=int, default=48,
                    help="new scenes rendered for training only, added to the training split (the held-out split is unchanged)")
     p.add_argument("--minutes", type=float, default=15.0)
     p.add_argument("--loss-pool", type=int, default=2, help="train.loss_pool: px blocks the loss averages in linear light (1: pixels)")
@@ -90,13 +90,18 @@ def main() -> None:
     clean = args.data.with_name(f"{args.data.name}_test{args.test_spp}")
     if args.test_spp > 0:
         held_out = [int(s.name.removeprefix("scene_")) for s in split_scenes(find_scenes(args.data), "test", 0.25, 0)]
-        extra = list(range(args.scenes, args.scenes + args.extra_test_scenes))
-        run(*render(args.scenes + args.extra_test_scenes), "--out", str(clean), "--spp", str(args.test_spp),
+        extra = list(range(args.scenes + args.train_scenes, args.scenes + args.train_scenes + args.extra_test_scenes))
+        # the clean set is scored whole: a scene left there by a run with other flags may be a training scene of this one
+        there = {e.name for e in clean.iterdir() if e.is_dir() and not e.name.startswith(".")} if clean.is_dir() else set()
+        stray = sorted(there - {f"scene_{i:05d}" for i in held_out + extra})
+        if stray:
+            raise SystemExit(f"error: {clean} holds {len(stray)} scenes outside this run's held-out set (first: {stray[0]}); "
+                             "move them out or pass another --data")
+        run(*render(args.scenes + args.train_scenes + args.extra_test_scenes), "--out", str(clean), "--spp", str(args.test_spp),
             "--aif-spp", str(max(args.test_spp // 4, 1)), "--only", *map(str, held_out + extra))
     train_root, test_fraction = args.data, 0.25
     if args.train_scenes > 0:
-        first = args.scenes + args.extra_test_scenes
-        new = range(first, first + args.train_scenes)
+        new = range(args.scenes, args.scenes + args.train_scenes)
         extra_root = args.data.with_name(f"{args.data.name}_train")
         run(*render(new.stop), "--out", str(extra_root), "--spp", str(args.spp), "--only", *map(str, new))
         train_root, test_fraction = args.data.with_name(f"{args.data.name}_trainset{args.train_scenes}"), 0.0
