@@ -90,14 +90,15 @@ def main() -> None:
     clean = args.data.with_name(f"{args.data.name}_test{args.test_spp}")
     if args.test_spp > 0:
         held_out = [int(s.name.removeprefix("scene_")) for s in split_scenes(find_scenes(args.data), "test", 0.25, 0)]
-        extra = list(range(args.scenes + args.train_scenes, args.scenes + args.train_scenes + args.extra_test_scenes))
+        first_extra = args.scenes + args.train_scenes  # after the training-only scenes
+        extra = list(range(first_extra, first_extra + args.extra_test_scenes))
         # the clean set is scored whole: a scene left there by a run with other flags may be a training scene of this one
         there = {e.name for e in clean.iterdir() if e.is_dir() and not e.name.startswith(".")} if clean.is_dir() else set()
         stray = sorted(there - {f"scene_{i:05d}" for i in held_out + extra})
         if stray:
             raise SystemExit(f"error: {clean} holds {len(stray)} scenes outside this run's held-out set (first: {stray[0]}); "
                              "move them out or pass another --data")
-        run(*render(args.scenes + args.train_scenes + args.extra_test_scenes), "--out", str(clean), "--spp", str(args.test_spp),
+        run(*render(first_extra + args.extra_test_scenes), "--out", str(clean), "--spp", str(args.test_spp),
             "--aif-spp", str(max(args.test_spp // 4, 1)), "--only", *map(str, held_out + extra))
     train_root, test_fraction = args.data, 0.25
     if args.train_scenes > 0:
