@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from neuralbokeh.core.apertures import ApertureModel, Disk
-from neuralbokeh.core.bands import band_diameters
+from neuralbokeh.core.bands import band_diameters, highlight_coc
 from neuralbokeh.core.contract import Contract
 from neuralbokeh.core.normalization import Normalization
 from neuralbokeh.networks import ModelConfig, build_model
@@ -30,8 +30,11 @@ C_MAX = 13.0
 
 def _model(size=48, tile=24, overlap=8, blocks=6, init="disk", **kw):
     """Untrained, over 13 px; on the lattice uniform in |c| (``d_n = 1 + 2n`` with 6 blocks), the
-    centres the tests place CoCs on and between, unless ``near_focus_px`` is given."""
+    centres the tests place CoCs on and between, unless ``near_focus_px`` is given. Point lights
+    get the pupil at their own CoC (``highlight_spread`` off) unless asked: the tests of the
+    raster place them."""
     kw.setdefault("near_focus_px", 0.0)
+    kw.setdefault("highlight_spread", False)
     torch.manual_seed(0)
     cfg = ModelConfig(blocks=blocks, tile=tile, overlap=overlap, pupil_init=init, **kw)
     return build_model(cfg, Contract(size, size, NORM, C_MAX, C_MAX)).eval()
@@ -977,7 +980,7 @@ def test_the_pixel_blur_learns_the_blur_the_truth_adds_and_none_where_it_adds_no
     shape = ViewGrid(np.ones((9, 9))) if truth == "views" else Disk()
     torch.manual_seed(0)
     cfg = ModelConfig(blocks=6, tile=24, overlap=8, pupil_init="aperture", near_focus_px=0.0, vignetting=False, pixel_blur=True,
-                      pixel_blur_px2=start)
+                      pixel_blur_px2=start, highlight_spread=False)  # the truth rasterises every pixel alike
     m = build_model(cfg, Contract(48, 48, NORM, C_MAX, C_MAX, aperture=ApertureModel(shape).to_dict())).train()
     g = torch.Generator().manual_seed(3)
     img = 0.18 * torch.exp2(6 * torch.rand(2, 3, 48, 48, generator=g, dtype=torch.float64) - 3)
@@ -995,3 +998,32 @@ def test_the_pixel_blur_learns_the_blur_the_truth_adds_and_none_where_it_adds_no
         losses.append(loss.item())
     assert losses[-1] < fall * losses[0], losses
     assert low < float(m.pixel_blur_px2(100.0).detach()) < high
+
+
+@pytest.mark.parametrize("c", [3.0, -4.4, 1.6, 0.8])
+def test_an_isolated_highlight_gets_the_kernel_of_its_grown_coc(c):
+    """``model.highlight_spread``: a point light alone on black at CoC ``c`` is rendered as the
+    same network without the rule renders it with ``highlight_coc(c)`` at its pixel (0.8 px leaves
+    band 0); a 2 x 2 block of the same light, and a highlight at 0.4 px (grown to 0.6, still band
+    0), bit for bit as without."""
+    on, off = _model(highlight_spread=True), _model()
+    x = torch.zeros(1, 3, 48, 48, dtype=torch.float64)
+    x[..., 20, 23] = 1000.0
+
+    def render(model, light, coc, at_light=None):
+        coc_px = torch.full((1, 1, 48, 48), coc, dtype=torch.float64)
+        coc_px[..., 20, 23] = coc if at_light is None else at_light
+        inp = torch.cat([NORM.encode(light), coc_px / C_MAX], 1).float()
+        with torch.no_grad():  # one plan for both, whatever CoC each frame holds
+            return NORM.decode(model(inp, plan_coc_px=C_MAX).double())
+
+    grown = float(highlight_coc(np.asarray(c)))
+    spread = render(on, x, c)
+    assert abs(grown) > abs(c)
+    # to 1e-6 of the light's 1000: the pixel keeps its own CoC as a receiver and carries it for the buckets
+    torch.testing.assert_close(spread, render(off, x, c, at_light=grown), rtol=1e-4, atol=1e-3)
+    assert not torch.allclose(spread, render(off, x, c), rtol=1e-3, atol=1e-3)
+    block = x.clone()
+    block[..., 20:22, 23:25] = 1000.0
+    assert torch.equal(render(on, block, c), render(off, block, c))
+    assert torch.equal(render(on, x, 0.4), render(off, x, 0.4))

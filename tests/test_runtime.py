@@ -1,11 +1,13 @@
 """The torch-free runtime: agreement with PyTorch, its errors, and in-focus tile skipping."""
 
+import json
 import subprocess
 import sys
 import warnings
 from pathlib import Path
 
 import numpy as np
+import onnx
 import pytest
 import torch
 
@@ -112,10 +114,11 @@ def test_in_focus_tiles_are_skipped_and_defocused_ones_unchanged(which, request)
     np.testing.assert_allclose(skip[:, : t - t_o], aif[:, : t - t_o], rtol=2e-6)  # skipped: the input
     if which == "paper":
         assert np.abs(full[:, : t - t_o] - aif[:, : t - t_o]).max() > 1e-3  # the busy network would have changed it
-    else:  # the lens network leaves CoC <= 1 px untouched: skipping is exact everywhere
+    else:  # the lens network leaves CoC <= 1 px untouched (highlights up to 0.65 px): skipping is exact everywhere
         np.testing.assert_allclose(skip, full, rtol=2e-6, atol=1e-7)
         # a lens tile scatters its core only: column 0's window reaches the blur, its core does not
-        reach = np.where(np.arange(m_skip.width) > t, 0.8 * m_skip.contract.max_coc_px, 0.9)[None].repeat(m_skip.height, 0)
+        # (0.6 px: an isolated highlight there grows to 0.92 px, still in focus)
+        reach = np.where(np.arange(m_skip.width) > t, 0.8 * m_skip.contract.max_coc_px, 0.6)[None].repeat(m_skip.height, 0)
         full, skip = m_full.render_coc(aif, reach), m_skip.render_coc(aif, reach)
         assert m_skip.last_tiles_run == 4 and m_skip.active_tiles(reach[None]).all()
         np.testing.assert_allclose(skip, full, rtol=2e-6, atol=1e-7)
@@ -161,6 +164,31 @@ def test_bands_no_pixel_of_a_tile_uses_are_left_out_exactly(busy_onnx, busy_chec
     assert m_full.last_bands_run == m_skip.num_tiles * blocks * 2
     assert 0 < m_skip.last_bands_run <= m_skip.num_tiles * 2 * (blocks // 3 + 2)
     np.testing.assert_allclose(skip, full, rtol=2e-6, atol=1e-7)
+
+
+def test_a_highlight_runs_the_band_its_grown_coc_needs_though_no_pixel_does(busy_onnx, busy_checkpoint, tmp_path):
+    """``model.highlight_spread``: isolated highlights at 0.9 px of CoC in an in-focus frame grow
+    out of band 0; the skipping runtime runs band 1 for them (no pixel's own CoC needs it) and
+    renders what PyTorch does, not the input. A file written before the key does not spread."""
+    m = OnnxBokeh(busy_onnx, threads=1)
+    assert m.highlight_spread
+    aif = np.full((m.height, m.width, 3), 0.05, dtype=np.float32)
+    coc = np.full((m.height, m.width), 0.3)
+    for r, c in ((3, 4), (9, 27), (14, 35)):
+        aif[r, c] = 40.0
+        coc[r - 1 : r + 2, c - 1 : c + 2] = 0.9
+    assert not m.active_bands(coc[None]).any()  # by their own CoC, nothing to run
+    out = m.render_coc(aif, coc)
+    assert m.last_bands_run > 0
+    got = m.contract.normalization.encode(out.astype(np.float64)).transpose(2, 0, 1)
+    assert np.abs(got - _torch_render(busy_checkpoint, aif, coc)).max() < 1e-4
+    assert np.abs(out - aif).max() > 1.0  # spread, not passed through
+    legacy = onnx.load(busy_onnx)
+    meta = json.loads(legacy.metadata_props[0].value)
+    del meta["model_config"]["highlight_spread"]
+    legacy.metadata_props[0].value = json.dumps(meta)
+    onnx.save(legacy, tmp_path / "legacy.onnx")
+    assert not OnnxBokeh(tmp_path / "legacy.onnx", threads=1).highlight_spread
 
 
 def test_active_bands_hold_every_band_the_network_uses(busy_onnx, busy_checkpoint):

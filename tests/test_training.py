@@ -65,13 +65,13 @@ def test_a_stored_model_config_reads_back_with_the_dataclass_defaults():
     assert ModelConfig.from_dict({"blocks": 3, "near_focus_px": 4.0, "pixel_blur": False, "surface_fill": True,
                                   "occlusion_margin_learned": True, "occlusion_margin_step": False, "occlusion_margin_slope": True,
                                   "occlusion_source_coc": True, "field_flow": False, "field_gradient": True,
-                                  "occlusion_source_coc_grid": 2}) == ModelConfig(blocks=3)
+                                  "occlusion_source_coc_grid": 2, "highlight_spread": True}) == ModelConfig(blocks=3)
     # keys whose defaults changed since: left out, they mean what they meant then (a uniform
     # lattice, no pixel blur, the sharp fill, a fixed margin without floors, each tile's light
-    # where its pupil puts it)
+    # where its pupil puts it, highlights rasterised as every pixel)
     then = {"near_focus_px": 0.0, "pixel_blur": False, "surface_fill": False, "occlusion_margin_learned": False,
             "occlusion_margin_step": False, "occlusion_margin_slope": False, "occlusion_source_coc": False, "field_gradient": False,
-            "occlusion_source_coc_grid": 1}
+            "occlusion_source_coc_grid": 1, "highlight_spread": False}
     assert ModelConfig.from_dict({"blocks": 3}) == ModelConfig(blocks=3, field_flow=False, **then)
     # a checkpoint from when the flow was the default: the flow, not today's gradient
     assert ModelConfig.from_dict({"blocks": 3, "field_flow": True}) == ModelConfig(blocks=3, field_flow=True, **then)

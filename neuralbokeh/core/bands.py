@@ -24,6 +24,16 @@ from .tiling import TileLayout
 
 # |c| <= POINT_PX is band 0 (in focus: a point); band n >= 1 is centred where w(d_n) = POINT_PX + n step
 POINT_PX = 1.0
+# An isolated highlight (a pixel far brighter than its neighbours) is a light smaller than its pixel,
+# somewhere in it. Its defocused image is the PSF placed there, box-filtered; not knowing where, the
+# best estimate is the PSF blurred by one more pixel box: 1/12 px^2 more variance per axis than the
+# kernel rasterised by area. A disk of diameter d has d^2 / 16 per axis, so such a source gets the
+# kernel of diameter sqrt(d^2 + 16 / 12) (docs/network.md, "Isolated highlights").
+HIGHLIGHT_SPREAD_PX2 = 16.0 / 12.0
+# a pixel is an isolated highlight where its luminance exceeds this multiple of its 8 neighbours' mean:
+# then at least two thirds of its light is more than its surroundings give, and no pixel of a
+# straight edge, of a corner or of a 2 x 2 block qualifies, however bright
+HIGHLIGHT_RATIO = 3.0
 
 
 def lattice_coordinate(coc_px: Any, near_px: float) -> Any:
@@ -33,6 +43,33 @@ def lattice_coordinate(coc_px: Any, near_px: float) -> Any:
     m = abs(coc_px)
     m = max(m, POINT_PX) if isinstance(m, float | int) else m.clip(min=POINT_PX)
     return m - POINT_PX + near_px * (1.0 - POINT_PX / m) if near_px else m - POINT_PX
+
+
+def highlight_coc(coc_px: Any) -> Any:
+    """The CoC (signed px; a numpy array or a torch tensor, the same ops) whose kernel an isolated
+    highlight at ``coc_px`` gets: ``sign(c) sqrt(c^2 + HIGHLIGHT_SPREAD_PX2)`` from 1 px, and below
+    the same factor as at 1 px (``c`` times 1.53): 0 stays 0, and a highlight at 0.7-1 px leaves
+    band 0, as a point at an unknown place in its pixel spreads into its neighbours under a disk
+    that small too (0.15-0.2 px^2 per axis at 0.75-1 px)."""
+    return coc_px * (1.0 + HIGHLIGHT_SPREAD_PX2 / (coc_px * coc_px).clip(min=POINT_PX**2)) ** 0.5
+
+
+def isolated_highlights(rgb: np.ndarray, ratio: float = HIGHLIGHT_RATIO) -> np.ndarray:
+    """``(B, H, W)`` bool: the pixels of linear ``rgb`` ``(B, 3, H, W)`` whose luminance (the
+    channels' mean, at least 0) exceeds ``ratio`` times their 8 neighbours' mean (the frame mirrored at its
+    edges, so an edge pixel is not its own neighbour; repeated on a frame 1 px thin). The numpy
+    twin of :func:`neuralbokeh.networks.lens.isolated_highlights`."""
+    y = np.asarray(rgb, dtype=np.float32).mean(axis=1)
+    np.maximum(y, 0.0, out=y)  # (the normalisation's rounding leaves -1e-9 for black)
+    h, w = y.shape[-2:]
+    p = np.pad(y, ((0, 0), (1, 1), (1, 1)), mode="reflect" if min(h, w) > 1 else "edge")
+    rows = p[:, 0:h] + p[:, 1 : h + 1]  # the 3 x 3 sum, rows then columns (in place: a 1080p frame is 8 MB a pass)
+    rows += p[:, 2 : h + 2]
+    s9 = rows[..., 0:w] + rows[..., 1 : w + 1]
+    s9 += rows[..., 2 : w + 2]
+    s9 -= y
+    s9 *= np.float32(ratio)
+    return y * np.float32(8.0) > s9
 
 
 def lattice_diameter(coordinate_px: Any, near_px: float) -> np.ndarray:
@@ -137,22 +174,28 @@ def hermite_weights(pos: Any, n: int) -> tuple[Any, Any]:
     return value, slope
 
 
-def active_bands(coc_px: np.ndarray, plan: BandPlan, layout: TileLayout, tiles: np.ndarray | None = None) -> np.ndarray:
+def active_bands(coc_px: np.ndarray, plan: BandPlan, layout: TileLayout, tiles: np.ndarray | None = None,
+                 points: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """``(tiles, N, 2)`` bool: whether any pixel that tile ``k`` scatters (its core, out to the
     window's edge on image-border sides) has a non-zero gate in band ``n = 1..N`` on side ``s``
     (0 behind the focus plane, 1 in front), in any image of the batch ``coc_px`` ``(B, H, W)``
     (signed px). A superset by 1e-3 of a band at the band edges, where float32 may round the
     network's gate either way. ``tiles`` ``(tiles,)`` bool: only these are looked at (the others
-    come back all False), so the work is the area of the tiles that run."""
+    come back all False), so the work is the area of the tiles that run. ``points``: (rows,
+    cols, CoC px) of more sources, each with the tile that scatters its pixel (e.g. isolated
+    highlights at their grown CoC, :func:`highlight_coc`)."""
     blocks = plan.blocks
     _, height, width = coc_px.shape
     flags = np.zeros((layout.num_tiles, max(blocks, 1), 2), dtype=bool)
     if blocks == 0:
         return flags
     span = blocks + 2
+    owner = layout.source_tile(points[0], points[1]) if points is not None and len(points[2]) else None
     for k in range(layout.num_tiles) if tiles is None else np.flatnonzero(tiles):
         r0, r1, c0, c1 = layout.source_region(int(k), height, width)
         c = np.asarray(coc_px[:, r0:r1, c0:c1], dtype=np.float32).ravel()
+        if owner is not None:
+            c = np.concatenate([c, np.asarray(points[2][owner == k], dtype=np.float32)])
         pos = plan.position(c)
         # 2 span: scatters nothing beyond band 0 (|c| <= 1 px gives position 0, where every band's
         # hat is 0; 1e-4 px of margin for the model's float32 CoC)

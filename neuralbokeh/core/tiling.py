@@ -78,6 +78,11 @@ class TileLayout(NamedTuple):
         c1 = min((j + 1) * self.core, width) if j < self.cols - 1 else width
         return i * self.core, r1, j * self.core, c1
 
+    def source_tile(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """The tile that scatters each image pixel ``(rows, cols)`` (int arrays): the one whose
+        :meth:`source_region` holds it (the regions partition the image)."""
+        return np.minimum(rows // self.core, self.rows - 1) * self.cols + np.minimum(cols // self.core, self.cols - 1)
+
     def source_masks(self) -> np.ndarray:
         """``(tiles, window, window)`` float32: 1 on the window pixels a tile scatters (its core,
         out to the window's edge on the image-border sides), so that every pixel of the padded

@@ -50,7 +50,7 @@ import numpy as np
 import onnx
 from onnx import TensorProto, helper
 
-from ..core.bands import POINT_PX, BandPlan
+from ..core.bands import HIGHLIGHT_RATIO, HIGHLIGHT_SPREAD_PX2, POINT_PX, BandPlan
 from ..core.contract import Contract
 from ..core.normalization import Normalization
 from ..core.tiling import pyramid_levels
@@ -499,6 +499,24 @@ def _band(b: GraphBuilder, k: int, n: int, side: int, pos: str, side_mask: str, 
     return _branch(g, g.op("Mul", weights, g.op("Unsqueeze", out, g.c("ax02", [0, 2], np.int64))), f"t{k}_band{n}_{side}")
 
 
+def source_coc_graph(g: Nodes, colour: str, c: str, norm: Normalization, h: int, w: int) -> str:
+    """:func:`~neuralbokeh.networks.lens.source_coc_px` of the frame's normalised ``colour``
+    ``(B, 3, H, W)`` and CoC ``c`` ``(B, 1, H, W)`` (px), op for op (``model.highlight_spread``)."""
+    y = g.op("Relu", g.op("ReduceMean", _decode(g, colour, norm), g.c("hl.ax1", [1], np.int64), keepdims=1))
+    p = g.op("Pad", y, g.c("hl.pads", [0, 0, 1, 1, 0, 0, 1, 1], np.int64), mode="reflect" if min(h, w) > 1 else "edge")
+
+    def three(v: str, axis: int, n: int) -> str:  # the sum of 3 neighbours along ``axis``: rows, then columns
+        parts = [g.op("Slice", v, g.c(f"hl.s{i}", [i], np.int64), g.c(f"hl.e{i + n}", [i + n], np.int64),
+                      g.c(f"hl.ax{axis}", [axis], np.int64)) for i in range(3)]
+        return g.op("Add", g.op("Add", parts[0], parts[1]), parts[2])
+
+    s9 = three(three(p, 2, h), 3, w)
+    highlight = g.op("Greater", g.op("Mul", y, g.c("hl.eight", 8.0)), g.op("Mul", g.c("hl.ratio", HIGHLIGHT_RATIO), g.op("Sub", s9, y)))
+    spread = g.op("Div", g.c("hl.spread", HIGHLIGHT_SPREAD_PX2), g.op("Max", g.op("Mul", c, c), g.c("hl.point2", POINT_PX**2)))
+    grown = g.op("Mul", c, g.op("Sqrt", g.op("Add", g.c("hl.one", 1.0), spread)))  # core.bands.highlight_coc
+    return g.op("Where", highlight, grown, c)
+
+
 def coc_slope_graph(g: Nodes, c: str, h: int, w: int) -> str:
     """:func:`~neuralbokeh.networks.lens.coc_slope` of the frame's CoC ``(B, 1, h, w)`` (px), op for op."""
     zero = g.c("zero", 0.0)
@@ -525,7 +543,7 @@ def _tile(b: GraphBuilder, k: int, cut: tuple[str, str, str | None, tuple[str, s
           rows: bool, margins: Mapping[int, float], slopes: Mapping[int, np.ndarray] | None = None,
           centroids: tuple[str, np.ndarray, Mapping[int, np.ndarray], np.ndarray] | None = None,
           gradients: tuple[Mapping[int, np.ndarray], np.ndarray] | None = None, coc_slopes: str | None = None,
-          carry_kernels: Mapping[int, np.ndarray] | None = None) -> onnx.GraphProto:
+          carry_kernels: Mapping[int, np.ndarray] | None = None, source_coc: str | None = None) -> onnx.GraphProto:
     """Then-branch: tile ``k``'s accumulators ``(B, 3, 6, win, win)``, flattened to ``(1, B 18 win^2)``,
     from its window of the inputs ``aif`` and ``coc`` (``cut``, :func:`_cut`: a tile that does not
     run cuts nothing); band ``n``, side ``s`` runs where ``band_active[k, n - 1, s]``. A
@@ -542,7 +560,8 @@ def _tile(b: GraphBuilder, k: int, cut: tuple[str, str, str | None, tuple[str, s
     ``window_offsets_px``)) for ``model.field_gradient``, or None. ``coc_slopes``: the frame's
     :func:`coc_slope_graph` ``(B, 1, H, W)`` (``model.occlusion_margin_slope``), or None.
     ``carry_kernels``: ``{n: (2, k, k)}`` the green PSFs binned to the carried CoC's grid
-    (``model.occlusion_source_coc``), or None."""
+    (``model.occlusion_source_coc``), or None. ``source_coc``: the frame's :func:`source_coc_graph`
+    ``(B, 1, H, W)`` px, whose band each source takes (``model.highlight_spread``), or None (its own CoC)."""
     g = Nodes(GraphBuilder(b.count), f"t{k}")
     blocks, diameters = plan.blocks, plan.diameters
     win = src.shape[-1]
@@ -554,7 +573,7 @@ def _tile(b: GraphBuilder, k: int, cut: tuple[str, str, str | None, tuple[str, s
     if blocks == 0:
         g0, pos = src_mask, None
     else:  # BandPlan.position, op for op
-        m = g.op("Max", g.op("Abs", c), g.c("point", POINT_PX))
+        m = g.op("Max", g.op("Abs", c if source_coc is None else _cut(g, source_coc, cut)), g.c("point", POINT_PX))
         shifted = g.op("Sub", m, g.c("point", POINT_PX))
         if plan.near_px > 0:  # the lattice coordinate's near-focus term
             shifted = g.op("Add", shifted, g.op("Mul", g.op("Sub", one, g.op("Reciprocal", m)), g.c("near_px", plan.near_px)))
@@ -890,6 +909,10 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: Mod
     coc_slopes = None
     if cfg.occlusion_margin_slope:  # of the whole frame, each tile cuts its window (LensBokeh.tile_accumulators)
         coc_slopes = coc_slope_graph(top, top.op("Mul", "coc", top.c("coc_scale_px", float(contract.coc_scale_px))), h, w)
+    source_coc = None
+    if cfg.highlight_spread and plan.blocks:  # of the whole frame: a highlight is found among its neighbours in any tile
+        source_coc = source_coc_graph(top, "aif", top.op("Mul", "coc", top.c("coc_scale_px", float(contract.coc_scale_px))),
+                                      contract.normalization, h, w)
     corners = window_offsets_px(layout, h, w)
     ring = edge_ring(top, "aif", h, w) if any(layout.pads(h, w)) else None
     ring_rows, ring_cols = layout.ring_indices(h, w)
@@ -911,7 +934,7 @@ def build_lens_graph(kernels: Mapping[int, np.ndarray], plan: BandPlan, cfg: Mod
         tile_gradients = None if gradients is None else ({n: gradients[n][k] for n in gradients}, corners[k])
         tile_carry = None if carry_kernels is None else {n: v[k] for n, v in carry_kernels.items()}
         then = _tile(b, k, cut, tile_kernels, tile_flow, scales, source_masks[k], cfg, contract, plan, fp16, rows, margins, tile_slopes,
-                     tile_centroids, tile_gradients, coc_slopes, tile_carry)
+                     tile_centroids, tile_gradients, coc_slopes, tile_carry, source_coc)
         b.count += 10_000  # branch-local names stay unique across branches
         other = _idle(b, k, win)
         b.count += 10_000

@@ -32,10 +32,10 @@ SILHOUETTE_PX = 1
 # changed since: its network is rebuilt as it was trained
 LEGACY_DEFAULTS = {"near_focus_px": 0.0, "pixel_blur": False, "surface_fill": False, "occlusion_margin_learned": False,
                    "occlusion_margin_step": False, "occlusion_margin_slope": False, "occlusion_source_coc": False, "field_flow": False,
-                   "field_gradient": False, "occlusion_source_coc_grid": 1}
+                   "field_gradient": False, "occlusion_source_coc_grid": 1, "highlight_spread": False}
 # the switches: each must be true or false
 BOOLEAN_FIELDS = ("vignetting", "occlusion_margin_learned", "occlusion_margin_step", "occlusion_margin_slope", "occlusion_source_coc",
-                  "surface_fill", "field_flow", "field_gradient", "pixel_blur")
+                  "surface_fill", "field_flow", "field_gradient", "pixel_blur", "highlight_spread")
 KERNEL_SIZES = ("growing", "fixed3")
 TILINGS = ("overlap", "none", "no_overlap")
 HEADS = ("identity", "paper")
@@ -149,9 +149,16 @@ class ModelConfig:
             ``field_flow``, whose bilinear warp also smears what it moves. Three scatters per
             band instead of one (one grouped convolution of three feature groups in the
             export); skipped where the pupils do not vary. On by default.
+        highlight_spread: an isolated highlight (a pixel brighter than 3 times its 8
+            neighbours' mean) is a light smaller than its pixel, at an unknown place in it: it
+            gets the kernel of diameter ``sqrt(c^2 + 4/3)`` px (lens), the area raster blurred by
+            one more pixel box (+1/12 px^2 per axis); below 1 px ``c`` times 1.53, so a
+            highlight at 0.7-1 px leaves band 0. Parameter-free; on by default
+            (``docs/network.md``).
         (``features``, ``head`` and the FFT thresholds: paper only; ``pupil_*``,
         ``field_grid``, ``vignetting``, ``occlusion_margin*``, ``fill``, ``surface_fill``,
-        ``band_blend``, ``near_focus_px``, ``pixel_blur*``, ``field_flow``, ``field_gradient``: lens only; the rest: both.)
+        ``band_blend``, ``near_focus_px``, ``pixel_blur*``, ``field_flow``, ``field_gradient``,
+        ``highlight_spread``: lens only; the rest: both.)
     """
 
     architecture: str = "lens"
@@ -183,6 +190,7 @@ class ModelConfig:
     pixel_blur_px2: float = 0.0
     field_flow: bool = False
     field_gradient: bool = True
+    highlight_spread: bool = True
 
     def __post_init__(self) -> None:
         for name in ("features", "tile", "fft_min_kernel", "fft_min_kernel_train", "occlusion_source_coc_grid"):

@@ -34,7 +34,10 @@ The skeleton of the paper, given what a lens blur is made of:
    With ``band_blend = "hermite"`` the gates are cubic and each band also scatters (colour x
    slope weight, slope weight) by its kernels' derivative in the diameter
    (:func:`neuralbokeh.core.bands.hermite_weights`): a pixel between two centres then gets
-   nearly the kernel at its own CoC, not the linear blend of two.
+   nearly the kernel at its own CoC, not the linear blend of two. With ``highlight_spread`` an
+   isolated highlight (a light smaller than its pixel, at an unknown place in it) takes the
+   band of a slightly larger CoC, :func:`neuralbokeh.core.bands.highlight_coc`: the kernel
+   blurred by one more pixel box; as a receiver it keeps its own CoC.
 4. *Residual blocks R_1..R_N.* Block ``n`` scatters its band with per-channel kernels of size
    ``2n + 1`` (the paper's growing kernels, up to the largest CoC): the tile's pupil rasterised
    (anti-aliased, normalised to sum 1) at diameter ``d_n`` x the channel scale, point-reflected
@@ -86,7 +89,7 @@ import torch.nn.functional as F
 
 from ..core import checks
 from ..core.apertures import Aperture, Disk, Gaussian, aperture_from_dict
-from ..core.bands import BandPlan, hermite_weights, lattice_blocks, lattice_step
+from ..core.bands import HIGHLIGHT_RATIO, BandPlan, hermite_weights, highlight_coc, lattice_blocks, lattice_step
 from ..core.contract import Contract
 from ..core.tiling import TileLayout
 from ..ops.fftconv import next_fast_len
@@ -392,6 +395,26 @@ def _in_focus_light(rgb: torch.Tensor, pos: torch.Tensor, src: torch.Tensor, act
         same = keep * passthrough + (1.0 - keep) * same
     zeros = torch.zeros_like(same)
     return torch.stack([zeros, same, zeros], dim=2)
+
+
+def isolated_highlights(rgb: torch.Tensor) -> torch.Tensor:
+    """``(B, 1, H, W)`` bool: the pixels of linear ``rgb`` ``(B, 3, H, W)`` whose luminance (the
+    channels' mean, at least 0) exceeds ``HIGHLIGHT_RATIO`` times their 8 neighbours' mean (the frame mirrored
+    at its edges; the same sums in the same order as :func:`neuralbokeh.core.bands.isolated_highlights`)."""
+    y = rgb.mean(dim=1, keepdim=True).clamp_min(0.0)  # (the normalisation's rounding leaves -1e-9 for black)
+    h, w = y.shape[-2:]
+    p = F.pad(y, (1, 1, 1, 1), mode="reflect" if min(h, w) > 1 else "replicate")
+    rows = p[..., 0:h, :] + p[..., 1 : h + 1, :] + p[..., 2 : h + 2, :]  # the 3 x 3 sum, rows then columns
+    s9 = rows[..., 0:w] + rows[..., 1 : w + 1] + rows[..., 2 : w + 2]
+    return y * 8.0 > HIGHLIGHT_RATIO * (s9 - y)
+
+
+def source_coc_px(rgb: torch.Tensor, coc_px: torch.Tensor) -> torch.Tensor:
+    """The CoC (signed px) ``(B, 1, H, W)`` whose kernel each source pixel gets: its own, or at an
+    isolated highlight of linear ``rgb`` ``(B, 3, H, W)`` :func:`~neuralbokeh.core.bands.highlight_coc`'s
+    (``model.highlight_spread``). A frame-wide map: a highlight is found among its neighbours
+    whichever tile they fall in."""
+    return torch.where(isolated_highlights(rgb), highlight_coc(coc_px), coc_px)
 
 
 def overlap_for(max_coc_px: float) -> int:
@@ -847,10 +870,19 @@ class LensBokeh(nn.Module):
                           self.tile_offsets_px(layout, height, width, pupils.device, pupils.dtype))
 
     def frame_coc(self, x: torch.Tensor, plan_coc_px: float | None = None) -> float:
-        """The largest |CoC| (px) the frame's plan covers: ``plan_coc_px``, else the input's own."""
+        """The largest |CoC| (px) the frame's plan covers: ``plan_coc_px``, else the input's own
+        (with ``model.highlight_spread``, or its isolated highlights' grown CoC up to the largest
+        trained: beyond, as in the exported file's plan, they stay in the last band)."""
         if plan_coc_px is not None:
             return float(plan_coc_px)
-        return float((x[:, 3].abs().max() * float(self.contract.coc_scale_px)).item()) if x.numel() else 0.0
+        if not x.numel():
+            return 0.0
+        coc = x[:, 3:] * float(self.contract.coc_scale_px)
+        largest = float(coc.abs().max().item())
+        if self.config.highlight_spread:  # a highlight in focus may need band 1 where no pixel's own CoC does
+            grown = float(source_coc_px(self.contract.normalization.decode(x[:, :3]), coc).abs().max().item())
+            largest = max(largest, min(grown, float(self.contract.max_coc_px)))
+        return largest
 
     def tile_accumulators(self, x: torch.Tensor, window: torch.Tensor | None = None, tile_active: torch.Tensor | None = None,
                           scales: dict[int, int] | None = None, plan_coc_px: float | None = None) -> torch.Tensor:
@@ -883,7 +915,11 @@ class LensBokeh(nn.Module):
         xt = xt.view(b, n_t, 4, win, win)
         rgb = self.contract.normalization.decode(xt[:, :, :3])  # linear light
         coc = xt[:, :, 3] * float(self.contract.coc_scale_px)  # (B, T, win, win) signed px
-        pos = plan.position(coc)  # continuous band index
+        source_coc = coc  # the CoC whose kernel each source gets; the receivers keep their own
+        if cfg.highlight_spread and blocks:  # of the whole frame: a highlight is found among its neighbours in any tile
+            frame = source_coc_px(self.contract.normalization.decode(x[:, :3]), x[:, 3:] * float(self.contract.coc_scale_px))
+            source_coc = tile(frame, layout).view(b, n_t, win, win)
+        pos = plan.position(source_coc)  # continuous band index
         src = self.source_masks(layout, x.device, x.dtype)[None]  # (1, T, 1, win, win)
         active = torch.ones(n_t, dtype=torch.bool, device=x.device) if tile_active is None else tile_active.to(x.device)
         # a tensor of its own, not a view: the bands add into it in place (a view would make each
@@ -1052,6 +1088,8 @@ class LensBokeh(nn.Module):
         see :meth:`tile_accumulators`."""
         cfg = self.config
         check_network_input(x)
+        if checks.DEBUG:  # before the plan, whose highlight search decodes the colour
+            checks.check_finite("model input", x)
         plan_coc_px = self.frame_coc(x, plan_coc_px)  # read once (a device sync): the bands and the fill share it
         acc = self.tile_accumulators(x, window, tile_active, scales, plan_coc_px)  # (B, T, 3, 6, win, win)
         b, n_t, _, _, win, _ = acc.shape

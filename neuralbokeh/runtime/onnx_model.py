@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 import onnxruntime as ort
 
-from ..core.bands import BandPlan, active_bands
+from ..core.bands import HIGHLIGHT_RATIO, BandPlan, active_bands, highlight_coc, isolated_highlights
 from ..core.checks import check_at_least, check_finite, format_location
 from ..core.contract import Contract
 from ..core.optics import SensorWindow
@@ -138,6 +138,8 @@ class OnnxBokeh:
         self.skip_in_focus, self.in_focus_px = skip_in_focus, float(in_focus_px)
         self.has_bands = "band_active" in {i.name for i in self.session.get_inputs()}
         self.plan = self._band_plan() if self.has_bands else None
+        # files written before the key existed do not spread highlights (networks.config.LEGACY_DEFAULTS)
+        self.highlight_spread = self.has_bands and bool(self.meta["model_config"].get("highlight_spread", False))
         self.last_tiles_run = 0
         self.last_bands_run = 0  # (tile, band, side) scatters run by the last call (lens models)
 
@@ -178,30 +180,48 @@ class OnnxBokeh:
         chw, batched = self._images(aif)
         return self._run(chw, self._per_pixel("coc_px", coc_px, chw, batched), clamp_coc, batched)
 
-    def active_tiles(self, coc_px: np.ndarray) -> np.ndarray:
+    def active_tiles(self, coc_px: np.ndarray, points: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> np.ndarray:
         """``(tiles,)`` bool: tiles whose window holds a |CoC| >= ``in_focus_px`` in any image of
-        the batch ``(B, H, W)`` (all true when skipping is off)."""
+        the batch ``(B, H, W)``, or that scatter one of ``points`` (rows, cols, CoC px; see
+        :meth:`highlights`) with such a CoC (all true when skipping is off)."""
         if not self.skip_in_focus:
             return np.ones(self.num_tiles, dtype=bool)
         size = np.abs(coc_px).max(axis=0)
         top, _, left, _ = self.layout.pads(self.height, self.width)
         win = self.layout.window
         # a window's max over the edge-padded frame is its max over the frame: padding repeats edge pixels
-        return np.array([size[max(r - top, 0) : r - top + win, max(c - left, 0) : c - left + win].max() >= self.in_focus_px
-                         for _, r, c in self.layout.origins()], dtype=bool)
+        active = np.array([size[max(r - top, 0) : r - top + win, max(c - left, 0) : c - left + win].max() >= self.in_focus_px
+                           for _, r, c in self.layout.origins()], dtype=bool)
+        if points is not None:
+            rows, cols, _ = (p[np.abs(points[2]) >= self.in_focus_px] for p in points)
+            active[self.layout.source_tile(rows, cols)] = True
+        return active
 
     def _band_plan(self) -> BandPlan:
         """The band plan the file was exported with (:func:`read_metadata` checks it is there)."""
         return BandPlan.from_dict(self.meta["band_plan"])
 
-    def active_bands(self, coc_px: np.ndarray, tiles: np.ndarray | None = None) -> np.ndarray:
+    def active_bands(self, coc_px: np.ndarray, tiles: np.ndarray | None = None,
+                     points: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> np.ndarray:
         """``(tiles, N, 2)`` bool (lens models): the bands and sides each tile's pixels use in
-        the batch ``coc_px`` ``(B, H, W)`` (:func:`neuralbokeh.core.bands.active_bands`, with the
+        the batch ``coc_px`` ``(B, H, W)``, and the ``points`` (rows, cols, CoC px; see
+        :meth:`highlights`) it scatters (:func:`neuralbokeh.core.bands.active_bands`, with the
         file's plan), of the ``tiles`` ``(tiles,)`` bool only (default: all); all true when
         skipping is off."""
         if not self.skip_in_focus:
             return np.ones((self.num_tiles, max(self.plan.blocks, 1), 2), dtype=bool)
-        return active_bands(coc_px, self.plan, self.layout, tiles)
+        return active_bands(coc_px, self.plan, self.layout, tiles, points)
+
+    def highlights(self, aif: np.ndarray, coc_px: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """Where the file spreads isolated highlights (``model.highlight_spread``; else None):
+        (rows, columns, grown CoC px) of every pixel of linear ``aif`` ``(B, 3, H, W)`` within 0.1 %
+        of the highlight ratio, a superset of the graph's (which decides on the float32 decoded
+        input), with :func:`highlight_coc` of its ``coc_px`` ``(B, H, W)``: sources whose tiles
+        and bands run as well as their own CoC's."""
+        if not self.highlight_spread:
+            return None
+        b, r, c = np.nonzero(isolated_highlights(aif, HIGHLIGHT_RATIO * (1.0 - 1e-3)))
+        return r, c, highlight_coc(coc_px[b, r, c])
 
     def _images(self, aif: np.ndarray) -> tuple[np.ndarray, bool]:
         a = np.asarray(aif)
@@ -246,7 +266,8 @@ class OnnxBokeh:
                 raise ValueError(f"{msg}; {more}clamp it with clamp_coc=True (--clamp-coc on the command line)")
             log.warning("%s; clamped", msg)
             coc_px = np.clip(coc_px, -self.contract.max_coc_px, self.contract.max_coc_px)
-        active = self.active_tiles(coc_px)
+        points = self.highlights(aif, coc_px)
+        active = self.active_tiles(coc_px, points)
         self.last_tiles_run = int(active.sum())
         colour, coc = self.contract.encode_inputs(aif, coc_px[:, None])
         feeds = {
@@ -256,7 +277,7 @@ class OnnxBokeh:
             "tile_active": active,
         }
         if self.has_bands:
-            bands = self.active_bands(coc_px, active) & active[:, None, None]
+            bands = self.active_bands(coc_px, active, points) & active[:, None, None]
             # a lens tile scatters its core only: with no band to run it is its pass-through (exact)
             active = active & bands.any(axis=(1, 2))
             self.last_tiles_run = int(active.sum())
