@@ -869,23 +869,31 @@ class LensBokeh(nn.Module):
         return FieldParts(pupils, drift, offsets, neighbours, per_px,
                           self.tile_offsets_px(layout, height, width, pupils.device, pupils.dtype))
 
-    def frame_coc(self, x: torch.Tensor, plan_coc_px: float | None = None) -> float:
+    def source_coc(self, x: torch.Tensor) -> torch.Tensor | None:
+        """The frame's :func:`source_coc_px` ``(B, 1, H, W)`` of the input ``(B, 4, H, W)`` with
+        ``model.highlight_spread``, else None (every source takes its own CoC)."""
+        if not self.config.highlight_spread:
+            return None
+        return source_coc_px(self.contract.normalization.decode(x[:, :3]), x[:, 3:] * float(self.contract.coc_scale_px))
+
+    def frame_coc(self, x: torch.Tensor, plan_coc_px: float | None = None, source: torch.Tensor | None = None) -> float:
         """The largest |CoC| (px) the frame's plan covers: ``plan_coc_px``, else the input's own
         (with ``model.highlight_spread``, or its isolated highlights' grown CoC up to the largest
-        trained: beyond, as in the exported file's plan, they stay in the last band)."""
+        trained: beyond, as in the exported file's plan, they stay in the last band). ``source``:
+        :meth:`source_coc` of ``x`` if already computed."""
         if plan_coc_px is not None:
             return float(plan_coc_px)
         if not x.numel():
             return 0.0
-        coc = x[:, 3:] * float(self.contract.coc_scale_px)
-        largest = float(coc.abs().max().item())
-        if self.config.highlight_spread:  # a highlight in focus may need band 1 where no pixel's own CoC does
-            grown = float(source_coc_px(self.contract.normalization.decode(x[:, :3]), coc).abs().max().item())
-            largest = max(largest, min(grown, float(self.contract.max_coc_px)))
+        largest = float((x[:, 3].abs().max() * float(self.contract.coc_scale_px)).item())
+        source = self.source_coc(x) if source is None else source
+        if source is not None:  # a highlight in focus may need band 1 where no pixel's own CoC does
+            largest = max(largest, min(float(source.abs().max().item()), float(self.contract.max_coc_px)))
         return largest
 
     def tile_accumulators(self, x: torch.Tensor, window: torch.Tensor | None = None, tile_active: torch.Tensor | None = None,
-                          scales: dict[int, int] | None = None, plan_coc_px: float | None = None) -> torch.Tensor:
+                          scales: dict[int, int] | None = None, plan_coc_px: float | None = None,
+                          source: torch.Tensor | None = None) -> torch.Tensor:
         """``(B, 4, H, W)`` -> per-window accumulators ``(B, tiles, 3 buckets, 6, win, win)``
         (premultiplied RGB and per-channel coverage of the near, same-surface and far light).
 
@@ -897,7 +905,8 @@ class LensBokeh(nn.Module):
         on a grid ``s`` times coarser (box-averaged features, the kernel binned by
         :func:`reduce_kernel`, bilinear upsampling), the approximation the fast export makes;
         the buckets stay at full resolution. ``plan_coc_px``: plan the bands for this largest
-        |CoC| instead of the frame's own (larger CoCs then stay in the last band).
+        |CoC| instead of the frame's own (larger CoCs then stay in the last band). ``source``:
+        :meth:`source_coc` of ``x`` if already computed.
         """
         cfg = self.config
         check_network_input(x)
@@ -908,7 +917,9 @@ class LensBokeh(nn.Module):
             raise ValueError(f"window must have shape ({b}, 4) or (1, 4): (left, top, width, height), got {tuple(window.shape)}")
         layout = self.layout(height, width)
         n_t = layout.num_tiles
-        plan = self.plan(self.frame_coc(x, plan_coc_px))
+        if source is None and cfg.highlight_spread:
+            source = self.source_coc(x)
+        plan = self.plan(self.frame_coc(x, plan_coc_px, source))
         blocks, diameters = plan.blocks, plan.diameters
         xt = tile(x, layout, light=3)  # a point source on the frame's edge is not repeated into the padding
         win = xt.shape[-1]
@@ -916,9 +927,8 @@ class LensBokeh(nn.Module):
         rgb = self.contract.normalization.decode(xt[:, :, :3])  # linear light
         coc = xt[:, :, 3] * float(self.contract.coc_scale_px)  # (B, T, win, win) signed px
         source_coc = coc  # the CoC whose kernel each source gets; the receivers keep their own
-        if cfg.highlight_spread and blocks:  # of the whole frame: a highlight is found among its neighbours in any tile
-            frame = source_coc_px(self.contract.normalization.decode(x[:, :3]), x[:, 3:] * float(self.contract.coc_scale_px))
-            source_coc = tile(frame, layout).view(b, n_t, win, win)
+        if source is not None and blocks:  # of the whole frame: a highlight is found among its neighbours in any tile
+            source_coc = tile(source, layout).view(b, n_t, win, win)
         pos = plan.position(source_coc)  # continuous band index
         src = self.source_masks(layout, x.device, x.dtype)[None]  # (1, T, 1, win, win)
         active = torch.ones(n_t, dtype=torch.bool, device=x.device) if tile_active is None else tile_active.to(x.device)
@@ -1090,8 +1100,9 @@ class LensBokeh(nn.Module):
         check_network_input(x)
         if checks.DEBUG:  # before the plan, whose highlight search decodes the colour
             checks.check_finite("model input", x)
-        plan_coc_px = self.frame_coc(x, plan_coc_px)  # read once (a device sync): the bands and the fill share it
-        acc = self.tile_accumulators(x, window, tile_active, scales, plan_coc_px)  # (B, T, 3, 6, win, win)
+        source = self.source_coc(x)  # once: the plan and the bands share it
+        plan_coc_px = self.frame_coc(x, plan_coc_px, source)  # read once (a device sync): the bands and the fill share it
+        acc = self.tile_accumulators(x, window, tile_active, scales, plan_coc_px, source)  # (B, T, 3, 6, win, win)
         b, n_t, _, _, win, _ = acc.shape
         h, w = x.shape[-2:]
         layout = self.layout(h, w)
