@@ -878,7 +878,7 @@ class LensBokeh(nn.Module):
 
     def frame_coc(self, x: torch.Tensor, plan_coc_px: float | None = None, source: torch.Tensor | None = None) -> float:
         """The largest |CoC| (px) the frame's plan covers: ``plan_coc_px``, else the input's own
-        (with ``model.highlight_spread``, or its isolated highlights' grown CoC up to the largest
+        (and, with ``model.highlight_spread``, its isolated highlights' grown CoC up to the largest
         trained: beyond, as in the exported file's plan, they stay in the last band). ``source``:
         :meth:`source_coc` of ``x`` if already computed."""
         if plan_coc_px is not None:
