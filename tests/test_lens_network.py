@@ -1000,12 +1000,12 @@ def test_the_pixel_blur_learns_the_blur_the_truth_adds_and_none_where_it_adds_no
     assert low < float(m.pixel_blur_px2(100.0).detach()) < high
 
 
-@pytest.mark.parametrize("c", [3.0, -4.4, 1.6, 0.8])
+@pytest.mark.parametrize("c", [1.2, -1.6, 1.9, 0.8])
 def test_an_isolated_highlight_gets_the_kernel_of_its_grown_coc(c):
     """``model.highlight_spread``: a point light alone on black at CoC ``c`` is rendered as the
     same network without the rule renders it with ``highlight_coc(c)`` at its pixel (0.8 px leaves
-    band 0); a 2 x 2 block of the same light, and a highlight at 0.4 px (grown to 0.6, still band
-    0), bit for bit as without."""
+    band 0); a 2 x 2 block of the same light, a highlight at 0.4 px (grown to 0.48, still band
+    0) and one at 3 or -4.4 px (from 2 px on the rule keeps the CoC), bit for bit as without."""
     on, off = _model(highlight_spread=True), _model()
     x = torch.zeros(1, 3, 48, 48, dtype=torch.float64)
     x[..., 20, 23] = 1000.0
@@ -1027,3 +1027,5 @@ def test_an_isolated_highlight_gets_the_kernel_of_its_grown_coc(c):
     block[..., 20:22, 23:25] = 1000.0
     assert torch.equal(render(on, block, c), render(off, block, c))
     assert torch.equal(render(on, x, 0.4), render(off, x, 0.4))
+    for far in (3.0, -4.4):
+        assert torch.equal(render(on, x, far), render(off, x, far)), far

@@ -26,10 +26,14 @@ from .tiling import TileLayout
 POINT_PX = 1.0
 # An isolated highlight (a pixel far brighter than its neighbours) is a light smaller than its pixel,
 # somewhere in it. Its defocused image is the PSF placed there, box-filtered; not knowing where, the
-# best estimate is the PSF blurred by one more pixel box: 1/12 px^2 more variance per axis than the
-# kernel rasterised by area. A disk of diameter d has d^2 / 16 per axis, so such a source gets the
-# kernel of diameter sqrt(d^2 + 16 / 12) (docs/network.md, "Isolated highlights").
+# best estimate is the PSF blurred by one more pixel box (1/12 px^2 per axis). Every kernel here is
+# a disk's area raster, so such a source gets the disk whose raster is nearest (L2) that estimate:
+# by brute force sqrt(d^2 + S (1 - d^2 / E^2)) from 1 px to E = 2 px, S = 16 / 12 (the box's variance
+# in diameter^2 units), and d itself from E on, where the raster of d is already as near as any
+# disk; the disk of the same variance (S at every d) is wider than the nearest from 1 to 3 px
+# (docs/network.md, "Isolated highlights").
 HIGHLIGHT_SPREAD_PX2 = 16.0 / 12.0
+HIGHLIGHT_SPREAD_END_PX = 2.0
 # a pixel is an isolated highlight where its luminance exceeds this multiple of its 8 neighbours' mean:
 # then at least two thirds of its light is more than its surroundings give, and no pixel of a
 # straight edge, of a corner or of a 2 x 2 block qualifies, however bright
@@ -47,11 +51,13 @@ def lattice_coordinate(coc_px: Any, near_px: float) -> Any:
 
 def highlight_coc(coc_px: Any) -> Any:
     """The CoC (signed px; a numpy array or a torch tensor, the same ops) whose kernel an isolated
-    highlight at ``coc_px`` gets: ``sign(c) sqrt(c^2 + HIGHLIGHT_SPREAD_PX2)`` from 1 px, and below
-    the same factor as at 1 px (``c`` times 1.53): 0 stays 0, and a highlight at 0.7-1 px leaves
-    band 0, as a point at an unknown place in its pixel spreads into its neighbours under a disk
-    that small too (0.15-0.2 px^2 per axis at 0.75-1 px)."""
-    return coc_px * (1.0 + HIGHLIGHT_SPREAD_PX2 / (coc_px * coc_px).clip(min=POINT_PX**2)) ** 0.5
+    highlight at ``coc_px`` gets: ``sign(c) sqrt(c^2 + S (1 - c^2 / E^2))`` from 1 px to ``E =
+    HIGHLIGHT_SPREAD_END_PX`` (``S = HIGHLIGHT_SPREAD_PX2``), ``c`` from ``E`` on, and below 1 px
+    the factor at 1 px (``c`` times 1.41): 0 stays 0, as a point in focus lands in its own pixel
+    wherever it is in it, and the network draws any disk under 1 px as that point."""
+    c2 = coc_px * coc_px
+    grown2 = c2 + HIGHLIGHT_SPREAD_PX2 * (1.0 - c2 / HIGHLIGHT_SPREAD_END_PX**2).clip(min=0.0)
+    return coc_px * (grown2 / c2.clip(min=POINT_PX**2)) ** 0.5
 
 
 def isolated_highlights(rgb: np.ndarray, ratio: float = HIGHLIGHT_RATIO) -> np.ndarray:

@@ -50,7 +50,7 @@ import numpy as np
 import onnx
 from onnx import TensorProto, helper
 
-from ..core.bands import HIGHLIGHT_RATIO, HIGHLIGHT_SPREAD_PX2, POINT_PX, BandPlan
+from ..core.bands import HIGHLIGHT_RATIO, HIGHLIGHT_SPREAD_END_PX, HIGHLIGHT_SPREAD_PX2, POINT_PX, BandPlan
 from ..core.contract import Contract
 from ..core.normalization import Normalization
 from ..core.tiling import pyramid_levels
@@ -512,8 +512,11 @@ def source_coc_graph(g: Nodes, colour: str, c: str, norm: Normalization, h: int,
 
     s9 = three(three(p, 2, h), 3, w)
     highlight = g.op("Greater", g.op("Mul", y, g.c("hl.eight", 8.0)), g.op("Mul", g.c("hl.ratio", HIGHLIGHT_RATIO), g.op("Sub", s9, y)))
-    spread = g.op("Div", g.c("hl.spread", HIGHLIGHT_SPREAD_PX2), g.op("Max", g.op("Mul", c, c), g.c("hl.point2", POINT_PX**2)))
-    grown = g.op("Mul", c, g.op("Sqrt", g.op("Add", g.c("hl.one", 1.0), spread)))  # core.bands.highlight_coc
+    c2 = g.op("Mul", c, c)
+    fade = g.op("Relu", g.op("Sub", g.c("hl.one", 1.0), g.op("Div", c2, g.c("hl.end2", HIGHLIGHT_SPREAD_END_PX**2))))
+    grown2 = g.op("Add", c2, g.op("Mul", g.c("hl.spread", HIGHLIGHT_SPREAD_PX2), fade))
+    ratio = g.op("Div", grown2, g.op("Max", c2, g.c("hl.point2", POINT_PX**2)))
+    grown = g.op("Mul", c, g.op("Sqrt", ratio))  # core.bands.highlight_coc
     return g.op("Where", highlight, grown, c)
 
 

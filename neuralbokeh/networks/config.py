@@ -151,10 +151,10 @@ class ModelConfig:
             export); skipped where the pupils do not vary. On by default.
         highlight_spread: an isolated highlight (a pixel brighter than 3 times its 8
             neighbours' mean) is a light smaller than its pixel, at an unknown place in it: it
-            gets the kernel of diameter ``sqrt(c^2 + 4/3)`` px (lens), the area raster blurred by
-            one more pixel box (+1/12 px^2 per axis); below 1 px ``c`` times 1.53, so a
-            highlight at 0.7-1 px leaves band 0. Parameter-free; on by default
-            (``docs/network.md``).
+            gets the disk whose area raster is nearest the raster blurred by one more pixel box
+            (``core.bands.highlight_coc``): ``sqrt(c^2 + (4/3)(1 - c^2/4))`` px from 1 to 2 px,
+            ``c`` from 2 px on; below 1 px ``c`` times 1.41, so a highlight at 0.71-1 px leaves
+            band 0. Parameter-free; on by default (``docs/network.md``).
         (``features``, ``head`` and the FFT thresholds: paper only; ``pupil_*``,
         ``field_grid``, ``vignetting``, ``occlusion_margin*``, ``fill``, ``surface_fill``,
         ``band_blend``, ``near_focus_px``, ``pixel_blur*``, ``field_flow``, ``field_gradient``,
